@@ -1,0 +1,73 @@
+"""Domain errors. Each carries a distinct process exit code; the CLI prints one line, never a traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = [
+    "FitmeError",
+    "InputNotFound",
+    "InputIsDirectory",
+    "InputEmpty",
+    "NotAnImage",
+    "TruncatedImage",
+    "ImageTooLarge",
+    "NoFaceFound",
+    "OutputNotWritable",
+    "ModelMissing",
+    "ModelBuildError",
+]
+
+
+class FitmeError(Exception):
+    """Base class. ``exit_code`` is the CLI's exit status for this error; ``path`` the file concerned."""
+
+    exit_code = 1
+
+    def __init__(self, message: str, path: str | Path | None = None):
+        super().__init__(message)
+        self.path = None if path is None else Path(path)
+        self.message = message
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.message}" if self.path is not None else self.message
+
+
+class InputNotFound(FitmeError):
+    exit_code = 10
+
+
+class InputIsDirectory(FitmeError):
+    exit_code = 11
+
+
+class InputEmpty(FitmeError):
+    exit_code = 12
+
+
+class NotAnImage(FitmeError):
+    exit_code = 13
+
+
+class TruncatedImage(FitmeError):
+    exit_code = 14
+
+
+class ImageTooLarge(FitmeError):
+    exit_code = 15
+
+
+class NoFaceFound(FitmeError):
+    exit_code = 16
+
+
+class OutputNotWritable(FitmeError):
+    exit_code = 17
+
+
+class ModelMissing(FitmeError):
+    exit_code = 20
+
+
+class ModelBuildError(FitmeError):
+    exit_code = 21
