@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -53,6 +53,7 @@ class FaceBox:
     keypoints: np.ndarray  # (6, 2) float32 image px: eyes, nose tip, mouth, tragions
     score: float  # [0, 1]
     rotation: int  # degrees (0, 90, 180, 270, counter-clockwise) of the copy it was found in
+    presence: float  # FaceMesh's face-presence probability on this box, the false-positive filter
 
     @property
     def area(self) -> float:
@@ -88,6 +89,28 @@ class Detection:
         if self.chosen is None:
             raise NoFaceFound("no face found")
         return self.faces[self.chosen]
+
+    def to_json(self) -> dict:
+        """Plain JSON-able data: lists of floats, image pixels, degrees."""
+
+        def r(a: np.ndarray, nd: int = 2) -> list:
+            return np.round(np.asarray(a, np.float64), nd).tolist()
+
+        faces = []
+        for f in self.faces:
+            d = {"box": r(f.detection.box), "score": round(f.detection.score, 4),
+                 "keypoints": r(f.detection.keypoints), "rotation": f.detection.rotation,
+                 "presence": round(f.detection.presence, 4)}
+            if f.landmarks is not None:
+                lm = f.landmarks
+                d["landmarks"] = r(lm.points)
+                d["ibug68"] = r(lm.ibug68)
+                d["pose"] = {"yaw": round(lm.pose.yaw, 2), "pitch": round(lm.pose.pitch, 2), "roll": round(lm.pose.roll, 2)}
+            if f.identity is not None:
+                d["identity"] = r(f.identity, 5)
+            faces.append(d)
+        return {"width": self.width, "height": self.height, "chosen": self.chosen, "faces": faces,
+                "seconds": {k: round(v, 4) for k, v in self.seconds.items()}}
 
 
 # ---------------------------------------------------------------- detection
@@ -205,14 +228,14 @@ def _across_rotations(per_rotation: dict[int, RawDetections], s: DetectSettings)
 
 
 def detect_faces(image: np.ndarray, settings: DetectSettings = DetectSettings(), root: Path | None = None) -> list[FaceBox]:
-    """All faces in ``image`` (H, W, 3) uint8 RGB, largest first.
+    """All faces in ``image`` (H, W, 3) uint8 RGB that FaceMesh confirms, largest first.
 
-    Whole image first (short and full range), then finer tiles of the full-range net until a face is
-    found (all scales with ``exhaustive``), each in 4 rotations unless ``rotations`` is off.
+    Whole image first (short and full range, 4 rotations unless ``rotations`` is off), then finer
+    upright tiles of the full-range net until a face is found (all scales with ``exhaustive``).
     """
     _check_image(image)
     s = settings
-    root = ensure_models(["blazeface_short", "blazeface_full"], root)
+    root = ensure_models(["blazeface_short", "blazeface_full", "facemesh"], root)
     h, w = image.shape[:2]
     rotations = (0, 1, 2, 3) if s.rotations else (0,)
     whole = [(0, 0, max(w, h))]
@@ -220,15 +243,31 @@ def detect_faces(image: np.ndarray, settings: DetectSettings = DetectSettings(),
         _run_detector(image, whole, "blazeface_short", SHORT_RANGE, root, s, rotations),
         _run_detector(image, whole, "blazeface_full", FULL_RANGE, root, s, rotations),
     ]
-    merged = lambda: {k: _concat([c[k] for c in cands]) for k in rotations}  # noqa: E731
-    found = _across_rotations(merged(), s)
+    checked: dict[tuple[float, ...], FaceBox | None] = {}
+
+    def confirmed() -> list[FaceBox]:
+        merged = {k: _concat([c[k] for c in cands]) for k in rotations}
+        faces = []
+        for d, k in _across_rotations(merged, s):
+            key = tuple(np.round(d.boxes[0], 1))
+            if key not in checked:
+                box = FaceBox(d.boxes[0], d.keypoints[0], float(d.scores[0]), 90 * k, 0.0)
+                _, presence = _facemesh(image, roi_from_detection(box.box, box.keypoints), root, s.threads)
+                checked[key] = replace(box, presence=presence) if presence >= s.min_presence else None
+            if checked[key] is not None:
+                faces.append(checked[key])
+        return faces
+
+    found = confirmed()
     for side in _tile_sides(w, h, s.min_face_px):
         if found and not s.exhaustive:
             break
-        cands.append(_run_detector(image, _tiles(w, h, side), "blazeface_full", FULL_RANGE, root, s, rotations))
-        found = _across_rotations(merged(), s)
-    faces = [FaceBox(d.boxes[0], d.keypoints[0], float(d.scores[0]), 90 * k) for d, k in found]
-    return sorted(faces, key=lambda f: -f.area)
+        # Tiles run upright only: 4 rotations would quadruple the cost (~7 s instead of ~2 s for a 12 MP
+        # photo), for small faces that in practice stand upright.
+        tiles = _run_detector(image, _tiles(w, h, side), "blazeface_full", FULL_RANGE, root, s, (0,))
+        cands.append({k: tiles.get(k, _concat([])) for k in rotations})
+        found = confirmed()
+    return sorted(found, key=lambda f: -f.area)
 
 
 # ---------------------------------------------------------------- landmarks

