@@ -316,9 +316,9 @@ def detect(image: np.ndarray, settings: DetectSettings = DetectSettings(), root:
         lm = face_landmarks(image, box, settings, root)
         ident = None
         if lm is not None and settings.identity:
-            from .identity import identity_descriptor
+            from .dlib_resnet import face_descriptor_onnx
 
-            ident = identity_descriptor(image, lm.ibug68, root)
+            ident = face_descriptor_onnx(image, lm.ibug68, ensure_models(["dlib_resnet"], root), settings.threads)
         faces.append(Face(box, lm, ident))
         if lm is not None and chosen is None:
             chosen = i
