@@ -14,6 +14,7 @@ __all__ = [
     "ImageTooLarge",
     "NoFaceFound",
     "OutputNotWritable",
+    "InputNotReadable",
     "ModelMissing",
     "ModelBuildError",
 ]
@@ -63,6 +64,10 @@ class NoFaceFound(FitmeError):
 
 class OutputNotWritable(FitmeError):
     exit_code = 17
+
+
+class InputNotReadable(FitmeError):
+    exit_code = 18
 
 
 class ModelMissing(FitmeError):

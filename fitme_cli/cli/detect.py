@@ -87,8 +87,7 @@ def command(photos: tuple[Path, ...], output: Path | None, overlay: Path | None,
     from tqdm import tqdm
 
     from ..errors import FitmeError, NoFaceFound
-    from ..io import atomic_write_image, load_image
-    from ..perception.store import atomic_write_bytes
+    from ..io import atomic_write_bytes, atomic_write_image, load_image
     from ..perception.detect import DetectSettings, detect
     from ..perception.registry import ensure_models
 
@@ -119,7 +118,7 @@ def command(photos: tuple[Path, ...], output: Path | None, overlay: Path | None,
                 entry["overlay"] = str(target)
             if det.chosen is None:
                 raise NoFaceFound("no face found" + (" (FaceMesh rejected every candidate)" if det.faces else ""), path)
-            if not as_json and output is None:
+            if not as_json:
                 tqdm.write(_summary(path, det), file=sys.stdout)
         except FitmeError as e:
             if e.path is None:

@@ -11,7 +11,6 @@ import hashlib
 import importlib.metadata
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ModelMissing
+from ..io.atomic import atomic_write_bytes  # re-exported: converters write through it
 
 __all__ = [
     "models_dir",
@@ -43,22 +43,6 @@ def models_dir() -> Path:
     if (_REPO_ROOT / "pyproject.toml").is_file() and (_REPO_ROOT / "models").is_dir():
         return _REPO_ROOT / "models"
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "fitme" / "models"
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same directory and an atomic rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def sha256_file(path: Path) -> str:

@@ -11,7 +11,8 @@ import numpy as np
 import torch
 
 from .onnx_runner import onnx_session
-from .store import SourceFile, atomic_write_bytes, load_tensors, read_card, save_tensors, write_card
+from ..io.atomic import atomic_write_bytes
+from .store import SourceFile, load_tensors, read_card, save_tensors, write_card
 from .tflite_graph import TfliteGraph, read_tflite
 from .tflite_net import TfliteNet
 
