@@ -185,6 +185,9 @@ def test_atomic_write_image(tmp_path, rgb):
     atomic_write_image(p, rgb)
     assert np.array_equal(load_image(p).rgb, rgb)
     assert [f.name for f in p.parent.iterdir()] == ["o.png"]  # no temporary left behind
+    mask = os.umask(0)
+    os.umask(mask)
+    assert p.stat().st_mode & 0o777 == 0o666 & ~mask  # not mkstemp's 0600
     with pytest.raises(errors.OutputNotWritable, match="unsupported image type"):
         atomic_write_image(tmp_path / "o.gif", rgb)
     (tmp_path / "file").write_text("x")
