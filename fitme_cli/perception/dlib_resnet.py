@@ -8,9 +8,7 @@ all), global average pool and a 128-d linear projection, on 150x150 RGB chips cu
 
 from __future__ import annotations
 
-import io
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -21,7 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import ModelBuildError
-from .store import SourceFile, atomic_write_bytes, load_tensors, package_file, save_tensors, write_card
+from .store import SourceFile, atomic_write_bytes, load_tensors, save_tensors, write_card
 
 __all__ = [
     "NAME",
@@ -54,8 +52,9 @@ _LEVEL_ENDS = (2, 6, 9, 12, 13)
 
 
 def source_file() -> SourceFile:
-    return package_file("face-recognition-models", "face_recognition_models",
-                        "models/dlib_face_recognition_resnet_model_v1.dat", "CC0-1.0")
+    from .registry import MODELS  # the one place that names each model's source package
+
+    return MODELS[NAME].source()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -389,17 +388,9 @@ def _reference_chip() -> tuple[np.ndarray | None, str]:
 
 
 def _export_onnx(model: DlibFaceDescriptor) -> bytes:
-    buf = io.BytesIO()
-    dummy = torch.rand(1, 3, INPUT_SIZE, INPUT_SIZE)
-    with warnings.catch_warnings():  # shape tests in the trace are static (only the batch varies)
-        warnings.simplefilter("ignore", torch.jit.TracerWarning)
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(
-            model, (dummy,), buf, dynamo=False, opset_version=17,
-            input_names=["image"], output_names=["descriptor"],
-            dynamic_axes={"image": {0: "batch"}, "descriptor": {0: "batch"}},
-        )
-    return buf.getvalue()
+    from .onnx_export import export_onnx
+
+    return export_onnx(model, torch.rand(1, 3, INPUT_SIZE, INPUT_SIZE), "image", ["descriptor"])
 
 
 def build(out_dir: Path) -> dict[str, Any]:

