@@ -79,6 +79,50 @@ def bench_tflite_agreement(root: Path) -> None:
         print(f"  {name:16s} |torch-ONNX| {d_to:.2e}   |ONNX-LiteRT| {d_or:.2e}")
 
 
+def _faces(astronaut: np.ndarray) -> dict[str, np.ndarray]:
+    from skimage import data
+
+    return {"astronaut": astronaut, "cameraman": np.repeat(data.camera()[..., None], 3, axis=2)}
+
+
+def bench_identity_agreement(root: Path, astronaut: np.ndarray) -> None:
+    """dlib: our chip + ONNX vs dlib's compute_face_descriptor with dlib's own 68-point predictor.
+    FaceNet: our torch and ONNX vs OpenCV's cv2.dnn on the same crop."""
+    import dlib
+
+    from fitme_cli.perception import dlib_resnet, facenet
+    from fitme_cli.perception.face_chip import extract_chip
+    from fitme_cli.perception.onnx_runner import onnx_session
+    from fitme_cli.perception.store import package_file
+
+    sp = package_file("face-recognition-models", "face_recognition_models",
+                      "models/shape_predictor_68_face_landmarks.dat", "CC0-1.0").path
+    predictor = dlib.shape_predictor(str(sp))
+    facerec = dlib.face_recognition_model_v1(str(dlib_resnet.source_file().path))
+    torch_dlib = dlib_resnet.load_dlib_resnet(root)
+    torch_fn = facenet.load_facenet(root)
+    net = facenet.read_net(facenet.source_file().path)
+    print("\n## identity networks on real faces (scikit-image astronaut and cameraman)")
+    for name, img in _faces(astronaut).items():
+        h, w = img.shape[:2]
+        box = {"astronaut": (175, 76, 265, 166), "cameraman": (190, 110, 270, 200)}[name]
+        shape = predictor(img, dlib.rectangle(*box))
+        lm = np.array([[p.x, p.y] for p in shape.parts()], np.float64)
+        ref = np.array(facerec.compute_face_descriptor(img, shape))
+        onnx = dlib_resnet.face_descriptor_onnx(img, lm, root)
+        chip = extract_chip(img, lm)
+        with torch.no_grad():
+            t = torch_dlib(torch.from_numpy(chip.astype(np.float32) / 255).permute(2, 0, 1)[None]).numpy()[0]
+        print(f"  dlib_resnet {name:10s} |torch-ONNX| {np.abs(t - onnx).max():.1e}   |ONNX-dlib| {np.abs(onnx - ref).max():.1e}")
+        crop = facenet.facenet_crop(img, lm)
+        x = np.ascontiguousarray((crop.astype(np.float32) / 255).transpose(2, 0, 1)[None])
+        o = onnx_session(root / "facenet.onnx").run(None, {"image": x})[0][0]
+        with torch.no_grad():
+            t = torch_fn(torch.from_numpy(x)).numpy()[0]
+            r = facenet.cv2dnn_embedding(net, facenet.prewhiten(torch.from_numpy(x)).numpy()).reshape(-1)
+        print(f"  facenet     {name:10s} |torch-ONNX| {np.abs(t - o).max():.1e}   |ONNX-cv2.dnn| {np.abs(o - r).max():.1e}")
+
+
 def bench_detect(astronaut: np.ndarray, repeats: int) -> None:
     from fitme_cli.perception.detect import DetectSettings, detect
 
@@ -105,14 +149,7 @@ def main() -> None:
     root = ensure_models(list(MODELS))
     astronaut = data.astronaut()
     bench_tflite_agreement(root)
-    try:
-        from fitme_cli.perception import dlib_resnet, facenet  # noqa: F401
-
-        for mod in (dlib_resnet, facenet):
-            if hasattr(mod, "benchmark_agreement"):
-                mod.benchmark_agreement(root)
-    except ImportError:
-        pass
+    bench_identity_agreement(root, astronaut)
     bench_detect(astronaut, 3 if args.quick else 7)
     if not args.quick:
         bench_build()

@@ -15,6 +15,7 @@ __all__ = [
     "NoFaceFound",
     "OutputNotWritable",
     "InputNotReadable",
+    "UnsupportedImage",
     "ModelMissing",
     "ModelBuildError",
 ]
@@ -68,6 +69,12 @@ class OutputNotWritable(FitmeError):
 
 class InputNotReadable(FitmeError):
     exit_code = 18
+
+
+class UnsupportedImage(FitmeError):
+    """A real image in a format or layout this build cannot decode (e.g. HEIC without pillow-heif)."""
+
+    exit_code = 19
 
 
 class ModelMissing(FitmeError):
