@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A batch: a folder of photos including bad ones. Each bad photo gets a one-line error and the rest
-# still run; the exit status is the first failure's (here 13, "not an image"), so we report it.
+# still run; the exit status is the first failure's (here 16: coffee.jpg, first in order, has no face).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-out/examples/batch}

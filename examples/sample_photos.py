@@ -1,11 +1,12 @@
-"""Write the sample photos the examples and `make demo` use, into DIR. They come from scikit-image at
-run time (real photos shipped inside that PyPI package); none is committed.
+"""Write the sample photos the examples and `make demo` use, into DIR. They come at run time from real
+photos shipped inside PyPI packages (scikit-image's astronaut and cameraman, matplotlib's Grace
+Hopper); none is committed.
 
     python examples/sample_photos.py DIR
 
 DIR/astronaut.jpg                 one frontal face (scikit-image's astronaut)
 DIR/person/astronaut_{1,2,3}.jpg  three "photos" of one person: original, mirrored crop, rotated darker
-DIR/batch/                        a batch: two faces, a photo with no face, a truncated JPEG, a text file
+DIR/batch/                        a batch: three people, a photo with no face, a truncated JPEG, a text file
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import cv2
 import numpy as np
 from skimage import data
 
+from fitme_cli.io import available_samples, sample_photo
+
 
 def _write(path: Path, rgb: np.ndarray, quality: int = 92) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -27,7 +30,7 @@ def _write(path: Path, rgb: np.ndarray, quality: int = 92) -> None:
 
 
 def main(out: Path) -> None:
-    astronaut = data.astronaut()
+    astronaut = sample_photo("astronaut").rgb
     _write(out / "astronaut.jpg", astronaut)
 
     person = out / "person"
@@ -38,7 +41,9 @@ def main(out: Path) -> None:
 
     batch = out / "batch"
     _write(batch / "astronaut.jpg", astronaut)
-    _write(batch / "cameraman.jpg", np.repeat(data.camera()[..., None], 3, axis=2))
+    _write(batch / "cameraman.jpg", sample_photo("camera").rgb)
+    if "grace_hopper" in available_samples():  # needs matplotlib (a test extra)
+        _write(batch / "grace_hopper.jpg", sample_photo("grace_hopper").rgb)
     _write(batch / "coffee.jpg", data.coffee())
     full = (batch / "astronaut.jpg").read_bytes()
     (batch / "truncated.jpg").write_bytes(full[: len(full) // 2])
