@@ -95,9 +95,9 @@ def test_bad_input_one_line_and_exit_code(photos, name, code, message):
 
 
 def test_too_large(photos, tmp_path):
-    from tests.test_io_images import _png_header_claiming
+    from tests.test_images import _png_claiming
 
-    (tmp_path / "bomb.png").write_bytes(_png_header_claiming(60000, 60000))
+    (tmp_path / "bomb.png").write_bytes(_png_claiming(60000, 60000))
     r = run("detect", tmp_path / "bomb.png")
     assert r.exit_code == 15 and "megapixels" in r.stderr
 

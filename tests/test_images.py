@@ -735,6 +735,10 @@ def test_atomic_write_image_round_trip(tmp_path, face):
     atomic_write_image(tmp_path / "a.png", 255 - face)  # replaces an existing file
     atomic_write_image(tmp_path / "a.png", face)
     assert np.array_equal(load_image(tmp_path / "a.png").rgb, face)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.jpeg", "a.png", "new"]  # no temporary left
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (tmp_path / "a.png").stat().st_mode & 0o777 == 0o666 & ~mask  # not mkstemp's 0600
 
 
 def test_atomic_write_image_errors(tmp_path, face, monkeypatch):

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import ModelBuildError, ModelMissing
+from .frozen_net import check_image_batch, register_weights
 from .store import SourceFile, atomic_write_bytes, load_tensors, save_tensors, write_card
 
 __all__ = [
@@ -209,21 +210,7 @@ def facenet_embedding(w: Mapping[str, torch.Tensor], image: torch.Tensor, whiten
 
 
 def _check_image(image: Any) -> None:
-    if not isinstance(image, torch.Tensor):
-        raise ValueError(f"expected a torch.Tensor image, got {type(image).__name__}")
-    if not image.is_floating_point():
-        raise ValueError(f"expected a floating-point image in [0, 1], got {image.dtype}")
-    if image.ndim != 4 or tuple(image.shape[1:]) != (3, INPUT_SIZE, INPUT_SIZE):
-        raise ValueError(f"expected image of shape (B, 3, {INPUT_SIZE}, {INPUT_SIZE}), got {tuple(image.shape)}")
-    if torch.jit.is_tracing() or torch.compiler.is_compiling():
-        return
-    if image.shape[0] == 0:
-        raise ValueError("empty batch")
-    lo, hi = (float(v) for v in torch.aminmax(image.detach()))
-    if not (np.isfinite(lo) and np.isfinite(hi)):
-        raise ValueError("image contains NaN or infinity")
-    if lo < -0.5 or hi > 1.5:  # slack for rendered images; this catches 0..255 input
-        raise ValueError(f"image values span [{lo:.3g}, {hi:.3g}]; expected RGB in [0, 1], not 0..255")
+    check_image_batch(image, INPUT_SIZE)
 
 
 class FaceNetEmbedder(nn.Module):
@@ -240,14 +227,7 @@ class FaceNetEmbedder(nn.Module):
         expected |= {"bottleneck.weight", "bottleneck.bias"}
         if set(weights) != expected:
             raise ValueError(f"weights do not match FaceNet: {sorted(set(weights) ^ expected)[:4]}")
-        for name in sorted(weights):
-            parent: nn.Module = self
-            *path, leaf = name.split(".")
-            for part in path:  # nested containers, so state_dict keys equal the weight names
-                if part not in parent._modules:
-                    parent.add_module(part, nn.Module())
-                parent = parent._modules[part]
-            parent.register_buffer(leaf, torch.as_tensor(np.asarray(weights[name]), dtype=torch.float32).clone())
+        register_weights(self, weights)
         self.eval()
 
     def weights(self) -> dict[str, torch.Tensor]:
