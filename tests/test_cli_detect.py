@@ -100,6 +100,9 @@ def test_too_large(photos, tmp_path):
     (tmp_path / "bomb.png").write_bytes(_png_claiming(60000, 60000))
     r = run("detect", tmp_path / "bomb.png")
     assert r.exit_code == 15 and "megapixels" in r.stderr
+    (tmp_path / "big.png").write_bytes(_png_claiming(11000, 11000))  # 121 MP: a 108 MP phone photo's size
+    r = run("detect", tmp_path / "big.png", "--max-megapixels", "50")
+    assert r.exit_code == 15 and "the limit is 50 megapixels" in r.stderr
 
 
 def test_unwritable_output(photos, tmp_path):

@@ -69,8 +69,10 @@ def _summary(path: Path, det) -> str:
 @click.option("--min-face", default=40, show_default=True, type=click.IntRange(8, None), help="Smallest face side to search for, in pixels.")
 @click.option("--no-rotations", is_flag=True, help="Do not retry on copies rotated by 90/180/270 degrees.")
 @click.option("--threads", default=0, type=click.IntRange(0, None), help="onnxruntime threads (0: its default).")
+@click.option("--max-megapixels", default=100, show_default=True, type=click.IntRange(1, 2000),
+              help="Refuse larger photos (decompression-bomb guard); raise it for 108/200 MP phone photos.")
 def command(photos: tuple[Path, ...], output: Path | None, overlay: Path | None, all_faces: bool,
-            as_json: bool, min_face: int, no_rotations: bool, threads: int) -> None:
+            as_json: bool, min_face: int, no_rotations: bool, threads: int, max_megapixels: int) -> None:
     """Find faces and landmarks in PHOTOS.
 
     For each photo: every face's box and score; for the largest face (every face with --all-faces)
@@ -87,7 +89,7 @@ def command(photos: tuple[Path, ...], output: Path | None, overlay: Path | None,
     from tqdm import tqdm
 
     from ..errors import FitmeError, NoFaceFound
-    from ..io import atomic_write_bytes, atomic_write_image, load_image
+    from ..io import ImageSettings, atomic_write_bytes, atomic_write_image, load_image
     from ..perception.detect import DetectSettings, detect
     from ..perception.registry import ensure_models
 
@@ -105,7 +107,7 @@ def command(photos: tuple[Path, ...], output: Path | None, overlay: Path | None,
     for path, name in zip(bar, names):
         entry: dict = {"path": str(path)}
         try:
-            image = load_image(path)
+            image = load_image(path, ImageSettings(max_pixels=max_megapixels * 1_000_000))
             det = detect(image.rgb, settings)
             entry.update(det.to_json())
             if overlay is not None:
