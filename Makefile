@@ -31,7 +31,7 @@ demo: setup
 	@echo "demo: overlay in $(DEMO_DIR)/astronaut.overlay.png, results in $(DEMO_DIR)/detect.json"
 
 bench: setup
-	$(BIN)/python benchmarks/bench_detect.py
+	$(BIN)/python benchmarks/bench_perception.py
 
 clean-models:
 	rm -f models/blazeface_short.* models/blazeface_full.* models/facemesh.* models/dlib_resnet.* models/facenet.*
