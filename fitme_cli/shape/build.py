@@ -399,7 +399,7 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
     from .expressions import build_expressions, face_parts
     from .regions import REGIONS, uv_region_map, vertex_regions
 
-    expr, expr_scale = build_expressions(mean, face_parts(mean, topo.contours), topo.blendshape_names)
+    expr, expr_scale = build_expressions(mean, fine_tri, face_parts(mean, topo.contours), topo.blendshape_names)
     face_weight = np.asarray(S[:, :468].sum(axis=1)).reshape(-1)
     labels = vertex_regions(mean, 468, face_weight > 0.5, topo.contours)
     region_uv = uv_region_map(labels, fine_tri, uv, uv_faces)

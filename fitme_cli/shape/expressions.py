@@ -82,7 +82,29 @@ def _rot_x(deg: float) -> np.ndarray:
     return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
 
 
-def build_expressions(mean: np.ndarray, parts: FaceParts, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _mouth_chains(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mouth hole's boundary split at the inner corners (78, 308): (upper chain, lower chain) vertex ids."""
+    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    key, count = np.unique(np.sort(e, 1), axis=0, return_counts=True)
+    adj: dict[int, list[int]] = {}
+    for a, b in key[count == 1].tolist():
+        adj.setdefault(a, []).append(b)
+        adj.setdefault(b, []).append(a)
+    chains = []
+    for start in adj[78]:  # walk from one inner corner to the other, both ways round
+        path, prev = [78, start], 78
+        while path[-1] != 308:
+            nxt = next(n for n in adj[path[-1]] if n != prev)
+            prev = path[-1]
+            path.append(nxt)
+        chains.append(np.asarray(path))
+    upper = next(c for c in chains if 13 in c)
+    lower = next(c for c in chains if 14 in c)
+    return upper, lower
+
+
+def build_expressions(mean: np.ndarray, triangles: np.ndarray, parts: FaceParts,
+                      names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3, E) displacement fields in mm at full activation, and (E,) prior scales, in ``names`` order."""
     v = mean
     x, y, z = v[:, 0], v[:, 1], v[:, 2]
@@ -94,15 +116,21 @@ def build_expressions(mean: np.ndarray, parts: FaceParts, names: tuple[str, ...]
     ear_z = v[[234, 454], 2].mean()
     pivot = np.array([0.0, v[[234, 454], 1].mean() - 5.0, ear_z - 15.0])
     front = _smoothstep((z - (ear_z - 30.0)) / 25.0)  # exactly zero from 30 mm behind the ear line
-    # the jaw/lip split is sharp at the lips and widens with distance from them, so that the cheeks
-    # stretch instead of creasing
-    d_lips = np.sqrt(((v[:, None, :] - v[P.lips][None]) ** 2).sum(-1).min(1))
-    lower = _sigmoid((slit_y - y) / (1.5 + 0.45 * d_lips)) * front * _sigmoid((80.0 - np.abs(x)) / 6.0)
+    # The jaw/lip split: nearer the lower lip than the upper one. Sharp at the lips (no zig-zag along the
+    # slit: every lip vertex goes with its own lip) and widening away from them, so cheeks stretch
+    # instead of creasing.
+    upper_chain, lower_chain = _mouth_chains(triangles)
+    upper_set = v[np.concatenate([upper_chain[1:-1], [185, 40, 39, 37, 0, 267, 269, 270, 409]])]
+    lower_set = v[np.concatenate([lower_chain[1:-1], [146, 91, 181, 84, 17, 314, 405, 321, 375]])]
+    dist = lambda a: np.sqrt(((v[:, None, :] - a[None]) ** 2).sum(-1).min(1))  # noqa: E731
+    d_up, d_lo = dist(upper_set), dist(lower_set)
+    d_lips = np.minimum(d_up, d_lo)
+    lower = _sigmoid((d_up - d_lo) / (0.7 + 0.45 * d_lips)) * front * _sigmoid((80.0 - np.abs(x)) / 6.0)
     below_nose = _sigmoid((v[2, 1] - y) / 6.0)
-    jaw_weight = lower * (y < v[2, 1] + 5)  # the lower face, below the lip slit
+    jaw_weight = lower * below_nose  # the lower face
     lips_w = _falloff(v, v[P.lips], 7.0) * front
-    upper_lip_w = lips_w * _sigmoid((y - slit_y) / 1.5)
-    lower_lip_w = lips_w * _sigmoid((slit_y - y) / 1.5)
+    upper_lip_w = lips_w * (1 - lower / np.maximum(front, 1e-9)).clip(0, 1)
+    lower_lip_w = lips_w * (lower / np.maximum(front, 1e-9)).clip(0, 1)
     fields: dict[str, np.ndarray] = {}
 
     def jaw_rotation(deg: float) -> np.ndarray:
