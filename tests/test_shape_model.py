@@ -38,7 +38,8 @@ def test_resolution_and_proportions(model, card):
     assert model.mean.shape[0] >= 10_000 and model.n_identity >= 80
     m = card["metrics"]
     assert m["ipd_mm"] == pytest.approx(63.0, abs=0.1)
-    assert 140 <= m["head_breadth_mm"] <= 165 and 190 <= m["head_height_mm"] <= 240
+    assert 140 <= m["head_breadth_mm"] <= 165 and 190 <= m["head_height_menton_to_vertex_mm"] <= 240
+    assert 50 <= m["neck_below_chin_mm"] <= 120
     # face vertices (the first 468 carry the landmarks) are denser than the rest of the head
     v = model.mean.numpy()
     t = model.triangles.numpy()

@@ -6,8 +6,9 @@ Steps (all deterministic):
 2. Mean face: FaceMesh's 3D predictions on real frontal photos shipped in PyPI packages (scikit-image's
    astronaut, matplotlib's Grace Hopper) and their mirror images, each put in its face frame, scaled to
    an interpupillary distance of 63 mm, averaged, symmetrised, rounded to 0.01 mm.
-3. Head: rings from the face oval over an anthropometric head ellipsoid (breadth 152 mm, length 192 mm)
-   to a pole at the back of the head, blended into the face. Closed but for the eye and mouth holes.
+3. Head: rings from the face oval to a pole at the back of the head, projected onto an implicit
+   head-and-neck surface (an anthropometric ellipsoid, breadth 152 mm, length 192 mm, smoothly united
+   with a round-ended neck cylinder) and blended into the face. Closed but for the eye and mouth holes.
 4. Refinement: two Loop subdivisions (smooth); vertex i stays landmark i. The face-oval controls are
    solved so that the surface passes exactly through the mean outline (the head's smoothing would
    pull the chin by 6 mm); interior landmarks are smoothed by ~1 mm, like the rest. Solving for every
@@ -41,6 +42,9 @@ class ShapeBuildSettings:
     head_length_mm: float = 192.0  # glabella-opisthocranion
     vertex_above_forehead_mm: float = 62.0  # head top above FaceMesh's top forehead point (10)
     rings: int = 10  # coarse rings from the face oval to the back pole
+    neck_radii_mm: tuple[float, float] = (54.0, 58.0)  # half width, half depth (adult neck ~ 110 x 116 mm)
+    neck_length_mm: float = 85.0  # below the chin, to a rounded end
+    neck_behind_chin_mm: float = 68.0  # neck axis behind the chin
     subdivisions: int = 2
     # GP kernel: (std mm, length scale mm) per scale, and the left-right correlation of the deformation
     scales: tuple[tuple[float, float], ...] = ((3.0, 90.0), (1.5, 40.0), (0.6, 15.0))
@@ -176,6 +180,38 @@ class _Head:
         return np.arccos(np.clip(u[:, 2], -1, 1)), np.arctan2(u[:, 1], u[:, 0])
 
 
+def _head_and_neck(head: _Head, chin: np.ndarray, s: ShapeBuildSettings):
+    """Implicit head+neck: smooth union of the head ellipsoid and a vertical, round-ended neck cylinder.
+    Returns f(p) (< 0 inside), in units of the ellipsoid's radii."""
+    rx, rz = s.neck_radii_mm
+    axis_z = chin[2] - s.neck_behind_chin_mm
+    bottom = chin[1] - s.neck_length_mm
+
+    def f(p: np.ndarray) -> np.ndarray:
+        d = p - head.centre
+        ay = np.where(d[:, 1] >= 0, head.ay_top, head.ay_bottom)
+        ell = np.sqrt((d[:, 0] / head.ax) ** 2 + (d[:, 1] / ay) ** 2 + (d[:, 2] / head.az) ** 2) - 1
+        side = np.sqrt((p[:, 0] / rx) ** 2 + ((p[:, 2] - axis_z) / rz) ** 2) - 1
+        end = np.maximum(bottom - p[:, 1], p[:, 1] - head.centre[1]) / 40.0  # ends inside the head
+        cyl = np.where(end > 0, np.sqrt(np.maximum(side, 0) ** 2 + end**2), np.maximum(side, end))
+        k = 0.12  # blend width: a smooth jaw-to-neck transition
+        return -k * np.logaddexp(-ell / k, -cyl / k)
+
+    return f
+
+
+def _project_star(points: np.ndarray, centre: np.ndarray, f) -> np.ndarray:
+    """Move each point along the ray from ``centre`` onto f = 0 (bisection; the shape is star-shaped)."""
+    d = points - centre
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lo, hi = np.zeros(len(d)), np.full(len(d), 400.0)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        inside = f(centre + d * mid[:, None]) < 0
+        lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
+    return centre + d * (0.5 * (lo + hi))[:, None]
+
+
 def _complete_head(face: np.ndarray, oval: np.ndarray, eyes: np.ndarray, s: ShapeBuildSettings):
     """Vertices and triangles of the head beyond the face oval. Returns (points, triangles, ring ids)."""
     eye_y = face[eyes, 1].mean()
@@ -190,15 +226,17 @@ def _complete_head(face: np.ndarray, oval: np.ndarray, eyes: np.ndarray, s: Shap
         az=s.head_length_mm / 2,
     )
     alpha0, beta = head.angles(face[oval])
-    offset = face[oval] - head.point(alpha0, beta)
+    shape = _head_and_neck(head, face[152], s)
+    surface = lambda a, b: _project_star(head.point(a, b), head.centre, shape)  # noqa: E731
+    offset = face[oval] - surface(alpha0, beta)
     n = len(oval)
     rings = []
     for r in range(1, s.rings):
         t = r / s.rings
         alpha = alpha0 + (np.pi - alpha0) * t
         w = max(0.0, 1.0 - r / 3.0) ** 2  # the face's own shape fades out over 3 rings
-        rings.append(head.point(alpha, beta) + w * offset)
-    pole = head.point(np.array(np.pi), np.array(0.0))[None]
+        rings.append(surface(alpha, beta) + w * offset)
+    pole = surface(np.array([np.pi]), np.array([0.0]))
     pts = np.concatenate(rings + [pole])
     base = face.shape[0]
     ring_ids = [oval] + [base + r * n + np.arange(n) for r in range(len(rings))]
@@ -459,7 +497,8 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
             "min_angle_p1_deg": round(float(np.percentile(min_angle, 1)), 2),
             "min_angle_median_deg": round(float(np.median(min_angle)), 2),
             "head_breadth_mm": round(float(np.ptp(mean[:, 0])), 1),
-            "head_height_mm": round(float(np.ptp(mean[:, 1])), 1),
+            "head_height_menton_to_vertex_mm": round(float(mean[:, 1].max() - mean[152, 1]), 1),
+            "neck_below_chin_mm": round(float(mean[152, 1] - mean[:, 1].min()), 1),
             "face_height_nasion_menton_mm": round(float(mean[168, 1] - mean[152, 1]), 1),
             "forehead_top_to_menton_mm": round(float(mean[10, 1] - mean[152, 1]), 1),
         },

@@ -25,7 +25,7 @@ def vertex_regions(mean: np.ndarray, n_face_coarse: int, face_vertex: np.ndarray
     chin_y = v[152, 1]
     brow_top = max(v[ids("left_eyebrow"), 1].max(), v[ids("right_eyebrow"), 1].max())
     lab[~face_vertex] = REGIONS.index("scalp")
-    lab[~face_vertex & (v[:, 1] < chin_y + 10) & (v[:, 2] > v[[234, 454], 2].mean() - 60)] = REGIONS.index("neck")
+    lab[~face_vertex & (v[:, 1] < chin_y + 5)] = REGIONS.index("neck")
     lab[face_vertex & (v[:, 1] > brow_top + 2)] = REGIONS.index("forehead")
     nose = np.array([1, 2, 4, 5, 6, 19, 94, 168, 195, 197, 45, 275, 48, 278, 64, 294, 98, 327, 129, 358, 102, 331,
                      115, 344, 131, 360, 220, 440, 75, 305, 97, 326, 166, 392, 79, 309, 240, 460])
