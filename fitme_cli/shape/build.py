@@ -5,7 +5,7 @@ Steps (all deterministic):
    with 3 edge flips that make it exactly mirror-symmetric (MediaPipe's canonical mesh is not quite).
 2. Mean face: FaceMesh's 3D predictions on real frontal photos shipped in PyPI packages (scikit-image's
    astronaut, matplotlib's Grace Hopper) and their mirror images, each put in its face frame, scaled to
-   an interpupillary distance of 63 mm, averaged, symmetrised, rounded to 0.01 mm.
+   an interpupillary distance of 63 mm, averaged, symmetrised, rounded to 0.01 mm; lips closed.
 3. Head: rings from the face oval to a pole at the back of the head, projected onto an implicit
    head-and-neck surface (an anthropometric ellipsoid, breadth 152 mm, length 192 mm, smoothly united
    with a round-ended neck cylinder) and blended into the face. Closed but for the eye and mouth holes.
@@ -426,6 +426,15 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
     dist, full_mirror = cKDTree(mean).query(mean * [-1.0, 1.0, 1.0])
     if dist.max() > 1e-6 or not np.array_equal(full_mirror[full_mirror], np.arange(n)):
         raise ModelBuildError(f"the mean head is not mirror-symmetric (max {dist.max():.3g} mm)")
+    # A neutral mean: both source photos smile with parted lips. Close the lips to a 0.5 mm slit with
+    # the model's own mouthClose field (symmetric, local to the lips), before anything is measured on it.
+    from .expressions import build_expressions, face_parts
+
+    parts = face_parts(mean, topo.contours)
+    close = build_expressions(mean, fine_tri, parts, ("mouthClose",))[0][:, :, 0]
+    gap = float(mean[parts.lip_upper_inner, 1].mean() - mean[parts.lip_lower_inner, 1].mean())
+    if gap > 0.5:
+        mean = mean + close * ((gap - 0.5) / (gap + 2.0))
     # identity basis
     K = _gp_kernel(coarse, s)
     lam, u = np.linalg.eigh(K)
@@ -443,7 +452,6 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
     uv, uv_faces = _cylindrical_uvs(mean, fine_tri, float(mean[:, 2].min() + (mean[:, 2].max() - mean[:, 2].min()) / 2))
     # expressions, correspondences, regions
     from ..perception.facemesh import IBUG68_FROM_FACEMESH
-    from .expressions import build_expressions, face_parts
     from .regions import REGIONS, uv_region_map, vertex_regions
 
     expr, expr_scale = build_expressions(mean, fine_tri, face_parts(mean, topo.contours), topo.blendshape_names)
