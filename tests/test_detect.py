@@ -166,3 +166,22 @@ def test_json_round_trip(reference):
     doc = json.loads(json.dumps(reference.to_json()))
     assert doc["chosen"] == 0 and len(doc["faces"][0]["landmarks"]) == 468 and len(doc["faces"][0]["ibug68"]) == 68
     assert set(doc["faces"][0]["pose"]) == {"yaw", "pitch", "roll"}
+
+
+def test_several_faces(astronaut, models_root):
+    """Two people side by side: both found; landmarks for the largest only, or for all with all_faces."""
+    import cv2
+
+    from fitme_cli.io import sample_photo
+
+    hopper = cv2.resize(sample_photo("grace_hopper").rgb, (400, 469))  # her face ~160 px, the astronaut's 96
+    canvas = np.zeros((512, 912, 3), np.uint8)
+    canvas[:, :512] = astronaut
+    canvas[:469, 512:] = hopper
+    det = detect(canvas, S, models_root)
+    assert len(det.faces) == 2 and det.chosen == 0
+    assert det.faces[0].detection.box[0] > 512  # the larger face, Grace Hopper's, comes first
+    assert det.faces[0].landmarks is not None and det.faces[1].landmarks is None
+    both = detect(canvas, DetectSettings(identity=False, all_faces=True), models_root)
+    assert all(f.landmarks is not None for f in both.faces)
+    assert both.faces[1].detection.box[2] < 512

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..perception.detect import Detection, Face
+from ..perception.detect import Detection, Face, FaceLandmarks
 
 __all__ = ["draw_detection"]
 
@@ -34,10 +34,8 @@ def _fx(p: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(p) * (1 << _SHIFT)).astype(np.int32)
 
 
-def _face_panel(image: np.ndarray, face: Face, side: int) -> np.ndarray:
+def _face_panel(image: np.ndarray, face: Face, lm: FaceLandmarks, side: int) -> np.ndarray:
     """The chosen face, upright as found, zoomed to side x side, with its mesh and contours."""
-    lm = face.landmarks
-    assert lm is not None
     b = face.detection.box
     cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
     half = 0.8 * max(b[2] - b[0], b[3] - b[1])
@@ -80,7 +78,7 @@ def draw_detection(image: np.ndarray, det: Detection, height: int = 768) -> np.n
         if face.landmarks is not None:
             for p in face.landmarks.points[:, :2] * k:
                 cv2.circle(vis, tuple(_fx(p)), 1 << _SHIFT, _MESH, -1, cv2.LINE_AA, _SHIFT)
-    chosen = [f for f in det.faces if f.landmarks is not None]
-    if not chosen:
+    if det.chosen is None or det.faces[det.chosen].landmarks is None:
         return vis
-    return np.concatenate([vis, _face_panel(image, det.faces[det.chosen or 0] if det.chosen is not None else chosen[0], height)], axis=1)
+    face = det.faces[det.chosen]
+    return np.concatenate([vis, _face_panel(image, face, face.landmarks, height)], axis=1)
