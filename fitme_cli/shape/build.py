@@ -13,7 +13,7 @@ Steps (all deterministic):
    solved so that the surface passes exactly through the mean outline (the head's smoothing would
    pull the chin by 6 mm); interior landmarks are smoothed by ~1 mm, like the rest. Solving for every
    landmark bends the surface at FaceMesh's near-coincident landmarks into slivers (min angle 1.9
-   degrees instead of 6.1). Every fine vertex is a fixed linear combination of the coarse ones (S).
+   degrees instead of 5.9). Every fine vertex is a fixed linear combination of the coarse ones (S).
 5. Identity basis: a Gaussian-process morphable model (Luthi et al. 2018) on the coarse mesh: a sum of
    three Gaussian kernels (coarse/medium/fine scales) with left-right coupling, eigen-decomposed, lifted
    to the fine mesh by S and re-orthonormalised there.
