@@ -18,6 +18,7 @@ __all__ = [
     "UnsupportedImage",
     "ModelMissing",
     "ModelBuildError",
+    "WrongLayout",
 ]
 
 
@@ -83,3 +84,9 @@ class ModelMissing(FitmeError):
 
 class ModelBuildError(FitmeError):
     exit_code = 21
+
+
+class WrongLayout(FitmeError):
+    """An image that is not a map in fitme's UV layout (e.g. a photo given to `fitme augment`)."""
+
+    exit_code = 22

@@ -14,6 +14,7 @@ __all__ = ["main"]
 _COMMANDS = {  # name -> module under fitme_cli.cli, imported only when the command runs
     "detect": "detect",
     "models": "models",
+    "augment": "augment",
 }
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["REGIONS", "vertex_regions", "uv_region_map"]
+__all__ = ["REGIONS", "vertex_regions", "uv_region_map", "region_masks"]
 
 # label value -> name; "skin" is the rest of the face
 REGIONS = ("scalp", "skin", "forehead", "brows", "eyes", "nose", "lips", "neck")
@@ -46,3 +46,12 @@ def uv_region_map(labels: np.ndarray, triangles: np.ndarray, uv: np.ndarray, uv_
         pts = np.round(px[uv_faces[f]] * 16).astype(np.int32)
         cv2.fillConvexPoly(out, pts, int(tri_label[f]), cv2.LINE_8, 4)
     return out
+
+
+def region_masks(region_uv: np.ndarray, size: int) -> dict[str, np.ndarray]:
+    """{region: (size, size) bool} from the stored UV label map (nearest-neighbour resampling), plus
+    "mapped": every texel some triangle covers."""
+    lab = cv2.resize(region_uv, (size, size), interpolation=cv2.INTER_NEAREST)
+    masks = {name: lab == i for i, name in enumerate(REGIONS)}
+    masks["mapped"] = lab != 255
+    return masks

@@ -1,0 +1,1 @@
+"""Reflectance: the skin albedo / specular / normal maps, their augmentation, and (later) BRDF-GAN."""
