@@ -94,6 +94,7 @@ def test_cli_keeps_size_and_format_and_never_touches_inputs(region_uv, tmp_path,
     assert (src / f"face{ext}").read_bytes() == before
     # deterministic by seed
     r2 = CliRunner().invoke(main, ["augment", str(src), "-o", str(tmp_path / "out2"), "--per-image", "3", "--seed", "4"])
+    assert r2.exit_code == 0
     assert [p.name for p in outs] == sorted(p.name for p in (tmp_path / "out2").iterdir())
 
 

@@ -128,7 +128,6 @@ def test_correspondences_in_the_right_regions(model):
 def test_uv_layout(model):
     uv = model.uv.numpy()
     assert uv.min() >= 0 and uv[:, 1].max() <= 1
-    v = model.mean.numpy()
     face = np.arange(468)
     # mirror-symmetric about u = 0.5 on the face
     m = model.mirror.numpy()[face]

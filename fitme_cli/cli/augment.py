@@ -48,7 +48,7 @@ def command(in_dir: Path, out_dir: Path, per_image: int, seed: int) -> None:
         raise OutputNotWritable(f"cannot create output directory: {e.strerror}", out_dir) from None
     files = sorted(p for p in in_dir.iterdir() if p.is_file() and p.suffix.lower() in _MAP_TYPES)
     if not files:
-        raise InputNotFound(f"no .png or .exr maps in the directory", in_dir)
+        raise InputNotFound("no .png or .exr maps in the directory", in_dir)
     region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
     inputs = {p.resolve() for p in files}
     first_error = None

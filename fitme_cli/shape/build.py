@@ -456,7 +456,7 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
 
     expr, expr_scale = build_expressions(mean, fine_tri, face_parts(mean, topo.contours), topo.blendshape_names)
     face_weight = np.asarray(S[:, :468].sum(axis=1)).reshape(-1)
-    labels = vertex_regions(mean, 468, face_weight > 0.5, topo.contours)
+    labels = vertex_regions(mean, face_weight > 0.5, topo.contours)
     region_uv = uv_region_map(labels, fine_tri, uv, uv_faces)
     align5 = IBUG68_FROM_FACEMESH[[36, 39, 42, 45, 33]]  # dlib's 5 points: eye corners, nose base
 

@@ -54,11 +54,9 @@ def face_parts(mean: np.ndarray, contours: dict[str, np.ndarray]) -> FaceParts:
         eye_lo[side] = e[rest & (mean[e, 1] <= line_y)]
         brow[side] = ids(f"{key}_eyebrow")
     lips = ids("lips")
-    inner = [61, 291, 78, 308]  # outer and inner mouth corners
     corner = {"Left": 291 if mean[291, 0] > 0 else 61, "Right": 61 if mean[291, 0] > 0 else 291}
     upper_inner = np.array([191, 80, 81, 82, 13, 312, 311, 310, 415])
     lower_inner = np.array([95, 88, 178, 87, 14, 317, 402, 318, 324])
-    del inner
     side = lambda l, r: {"Left": l, "Right": r} if mean[l, 0] > 0 else {"Left": r, "Right": l}  # noqa: E731
     return FaceParts(eye_up, eye_lo, brow, upper_inner, lower_inner, lips, corner, side(425, 205), side(358, 129))
 

@@ -17,7 +17,7 @@ def _near(v: np.ndarray, anchors: np.ndarray, r: float) -> np.ndarray:
     return d2 < r * r
 
 
-def vertex_regions(mean: np.ndarray, n_face_coarse: int, face_vertex: np.ndarray, contours: dict[str, np.ndarray]) -> np.ndarray:
+def vertex_regions(mean: np.ndarray, face_vertex: np.ndarray, contours: dict[str, np.ndarray]) -> np.ndarray:
     """(V,) uint8 labels (indices into REGIONS). ``face_vertex``: (V,) bool, inside the face oval."""
     v = mean
     ids = lambda k: np.unique(contours[k])  # noqa: E731
