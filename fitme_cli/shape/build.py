@@ -58,7 +58,7 @@ class ShapeBuildSettings:
 # ---------------------------------------------------------------- mean face from real photos
 
 
-def _facemesh_shapes() -> list[np.ndarray]:
+def _facemesh_shapes(root: Path) -> list[np.ndarray]:
     """FaceMesh landmarks of real frontal faces and their mirror images, in each face's own frame
     (model axes: x to the subject's left = image right, y up, z toward the viewer), IPD-normalised later."""
     from ..io import sample_photo
@@ -70,7 +70,7 @@ def _facemesh_shapes() -> list[np.ndarray]:
         rgb = sample_photo(name).rgb
         for flip in (False, True):
             img = np.ascontiguousarray(rgb[:, ::-1]) if flip else rgb
-            p = detect(img, DetectSettings(identity=False)).face.landmarks.points.astype(np.float64)
+            p = detect(img, DetectSettings(identity=False), root).face.landmarks.points.astype(np.float64)
             q = ((p - p.mean(0)) @ face_rotation(p)) * [1.0, -1.0, -1.0]
             if flip:
                 q[:, 0] *= -1.0  # un-mirror: now landmark i of the flipped photo lies where the mirror of i is
@@ -378,7 +378,7 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
     t0 = time.perf_counter()
     s = settings
     topo = read_facemesh_topology()
-    shapes = _facemesh_shapes()
+    shapes = _facemesh_shapes(Path(out_dir))  # the perception nets built beside it, not the default dir
     mirror = _mirror_map(shapes)
     le, re_ = np.unique(topo.contours["left_eye"]), np.unique(topo.contours["right_eye"])
     scaled = [q * (IPD_MM / np.linalg.norm(q[le].mean(0) - q[re_].mean(0))) for q in shapes]
