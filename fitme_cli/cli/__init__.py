@@ -15,6 +15,7 @@ _COMMANDS = {  # name -> module under fitme_cli.cli, imported only when the comm
     "detect": "detect",
     "models": "models",
     "augment": "augment",
+    "dataset": "dataset",
 }
 
 
