@@ -16,6 +16,7 @@ _COMMANDS = {  # name -> module under fitme_cli.cli, imported only when the comm
     "models": "models",
     "augment": "augment",
     "dataset": "dataset",
+    "train": "train",
 }
 
 

@@ -1,0 +1,119 @@
+"""``fitme train``: train BRDF-GAN on a folder of reflectance maps (from ``fitme dataset``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+__all__ = ["command"]
+
+# flag -> (settings class name, field)
+_GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers")
+_TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr")
+
+
+@click.command("train")
+@click.argument("data_dir", type=click.Path(path_type=Path))
+@click.option("-o", "--output", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory: checkpoint, metrics, sample grids.")
+@click.option("--config", type=click.Path(path_type=Path, dir_okay=False), help='JSON file {"gan": {...}, "train": {...}}; flags override it.')
+@click.option("--resume", is_flag=True, help="Continue from the run directory's checkpoint.")
+@click.option("--resolution", type=int, help="Output resolution (power of two). [256]")
+@click.option("--branch-resolution", type=int, help="Blocks from this resolution up are per modality. [256]")
+@click.option("--channel-base", type=int, help="Channels at resolution r: min(base / r, max). [2048]")
+@click.option("--channel-max", type=int, help="[128]")
+@click.option("--mapping-layers", type=int, help="[2]")
+@click.option("--batch", type=int, help="[8]")
+@click.option("--kimg", type=float, help="Train until this many thousand real images. [40]")
+@click.option("--r1-gamma", type=float, help="[1.0]")
+@click.option("--ada/--no-ada", default=None, help="ADA-style augmentation of D's inputs. [off]")
+@click.option("--snapshot-kimg", type=float, help="Grid, metrics and checkpoint every this many kimg. [1]")
+@click.option("--g-lr", type=float, help="[0.0025]")
+@click.option("--d-lr", type=float, help="[0.0025]")
+@click.option("--seed", type=int, help="[0]")
+@click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
+@click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
+def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, limit: int | None, threads: int | None, **flags) -> None:
+    """Train BRDF-GAN on DATA_DIR (NAME_albedo/_specular/_normals maps, PNG or EXR).
+
+    Every --snapshot-kimg it writes RUN_DIR/samples/kimgNNNN.NN.png (8 rows of A_D | A_S | N_S for fixed
+    latents), appends to RUN_DIR/metrics.jsonl and saves RUN_DIR/checkpoint.safetensors, from which
+    --resume continues exactly. Ctrl-C saves a checkpoint first.
+
+    \b
+    Example:
+      fitme dataset data/ -n 2000 --size 256
+      fitme train data/ -o runs/brdf_gan --kimg 40
+      fitme train data/ -o runs/brdf_gan --resume --kimg 60
+    """
+    import dataclasses
+
+    import torch
+
+    from ..errors import InputNotFound, OutputNotWritable
+    from ..reflectance.gan.data import load_dataset
+    from ..reflectance.gan.networks import GanSettings
+    from ..reflectance.gan.train import TrainSettings, load_checkpoint, new_state, save_checkpoint, train
+
+    from ..reflectance.gan.data import find_samples
+
+    find_samples(data_dir)  # a missing or empty data folder fails before anything else
+    if threads:
+        torch.set_num_threads(threads)
+    cfg: dict[str, dict] = {"gan": {}, "train": {}}
+    if config is not None:
+        if not config.is_file():
+            raise InputNotFound("config file not found", config)
+        try:
+            user = json.loads(config.read_text())
+        except json.JSONDecodeError as e:
+            raise click.BadParameter(f"{config} is not valid JSON: {e}") from None
+        for part in ("gan", "train"):
+            cfg[part].update(user.get(part, {}))
+    for name in _GAN_FLAGS:
+        if flags.get(name) is not None:
+            cfg["gan"][name] = flags[name]
+    if "resolution" in cfg["gan"] and "branch_resolution" not in cfg["gan"]:
+        cfg["gan"]["branch_resolution"] = cfg["gan"]["resolution"]  # branch the top block, as by default
+    for name in _TRAIN_FLAGS:
+        if flags.get(name) is not None:
+            cfg["train"][name] = flags[name]
+    try:
+        train_settings = TrainSettings(**cfg["train"])
+        gan_settings = GanSettings(**cfg["gan"])
+    except (TypeError, ValueError) as e:
+        raise click.BadParameter(str(e)) from None
+
+    ckpt = run_dir / "checkpoint.safetensors"
+    if resume:
+        if not ckpt.is_file():
+            raise InputNotFound("nothing to resume: no checkpoint.safetensors in the run directory", run_dir)
+        state = load_checkpoint(ckpt)
+        # only the run length and snapshot cadence may change on resume; the rest is the run's own
+        state.train = dataclasses.replace(state.train, **{k: v for k, v in cfg["train"].items() if k in ("kimg", "snapshot_kimg")})
+        gan_settings = state.gan
+        click.echo(f"resuming at {state.nimg / 1000:.2f} kimg", err=True)
+    else:
+        if ckpt.exists():
+            raise OutputNotWritable("the run directory has a checkpoint; pass --resume to continue it or choose another directory", run_dir)
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OutputNotWritable(f"cannot create run directory: {e.strerror}", run_dir) from None
+        state = None
+        (run_dir / "config.json").write_text(json.dumps({"gan": dataclasses.asdict(gan_settings),
+                                                         "train": dataclasses.asdict(train_settings),
+                                                         "data": str(data_dir.resolve())}, indent=2))
+    data = load_dataset(data_dir, gan_settings, limit=limit, progress=True)
+    if state is None:
+        state = new_state(gan_settings, train_settings, data_mean=data.float().mean(0))
+    click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
+               f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
+    try:
+        train(state, data, run_dir)
+    except KeyboardInterrupt:
+        save_checkpoint(state, ckpt)
+        click.echo(f"interrupted: checkpoint saved at {state.nimg / 1000:.2f} kimg", err=True)
+        raise
+    click.echo(f"done: {state.nimg / 1000:.2f} kimg in {state.wall_time / 3600:.2f} h of training; {ckpt}")

@@ -1,0 +1,98 @@
+"""Training data for BRDF-GAN: a folder written by ``fitme dataset`` (or any folder of
+``NAME_albedo``, ``NAME_specular``, ``NAME_normals`` maps, PNG or EXR) loaded into one tensor.
+
+PNG conventions (those of ``fitme dataset``): albedo 8/16-bit sRGB; specular 8/16-bit grey, linear;
+normals 16-bit (or 8-bit) raw ``0.5 n + 0.5``, not gamma-encoded. EXR maps are linear floats, normals
+as raw components in [-1, 1].
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ...errors import InputNotFound, WrongLayout
+from .networks import GanSettings, ReflectanceMaps, encode_maps
+
+__all__ = ["find_samples", "load_sample", "load_dataset"]
+
+_KINDS = ("albedo", "specular", "normals")
+
+
+def find_samples(data_dir: Path) -> list[str]:
+    """Sorted sample stems NAME for which all three maps exist (PNG or EXR)."""
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise InputNotFound("training data directory not found", data_dir)
+    stems = []
+    for p in sorted(data_dir.glob("*_albedo.*")):
+        stem = p.name[: -len("_albedo" + p.suffix)]
+        if all((data_dir / f"{stem}_{k}{p.suffix}").is_file() for k in _KINDS):
+            stems.append(f"{stem}{p.suffix}")
+    if not stems:
+        raise InputNotFound("no NAME_albedo/_specular/_normals map triplets in the directory", data_dir)
+    return stems
+
+
+def _read_raw(path: Path) -> np.ndarray:
+    """(H, W, C) float32: PNG scaled to [0, 1] without any transfer function, EXR as stored."""
+    if path.suffix.lower() == ".exr":
+        from ...io.maps import read_map
+
+        return read_map(path).linear
+    a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if a is None:
+        raise WrongLayout("cannot read map", path)
+    scale = 65535.0 if a.dtype == np.uint16 else 255.0
+    a = a.astype(np.float32) / scale
+    if a.ndim == 2:
+        a = a[..., None]
+    elif a.shape[2] >= 3:
+        a = a[..., 2::-1]  # BGR -> RGB, drop alpha
+    return a
+
+
+def load_sample(data_dir: Path, stem_ext: str, resolution: int) -> np.ndarray:
+    """(7, R, R) float32 physical maps: A_D linear (3), A_S linear (1), N_S unit (3)."""
+    from ...io.maps import read_map
+
+    data_dir = Path(data_dir)
+    stem, ext = stem_ext.rsplit(".", 1)
+    albedo = read_map(data_dir / f"{stem}_albedo.{ext}").linear[..., :3]
+    spec = _read_raw(data_dir / f"{stem}_specular.{ext}")[..., :1]
+    nrm = _read_raw(data_dir / f"{stem}_normals.{ext}")[..., :3]
+    if ext.lower() != "exr":
+        nrm = nrm * 2 - 1
+    out = []
+    for a in (albedo, spec, nrm):
+        if a.shape[0] != a.shape[1]:
+            raise WrongLayout(f"expected square UV maps, got {a.shape[1]}x{a.shape[0]}", data_dir / stem)
+        if a.shape[0] != resolution:
+            a = cv2.resize(a, (resolution, resolution), interpolation=cv2.INTER_AREA)
+            a = a[..., None] if a.ndim == 2 else a
+        out.append(a)
+    albedo, spec, nrm = out
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-6)
+    x = np.concatenate([np.clip(albedo, 0, 1), np.clip(spec, 0, 1), nrm], -1)
+    return np.ascontiguousarray(x.transpose(2, 0, 1), dtype=np.float32)
+
+
+def load_dataset(data_dir: Path, s: GanSettings, limit: int | None = None, progress: bool = False) -> torch.Tensor:
+    """(N, 7, R, R) float16 in ``s``'s network space (half the memory; enough for 8/16-bit sources)."""
+    resolution = s.resolution
+    stems = find_samples(data_dir)[:limit]
+    out = torch.empty(len(stems), 7, resolution, resolution, dtype=torch.float16)
+    it = stems
+    if progress:
+        import sys
+
+        from tqdm import tqdm
+
+        it = tqdm(stems, desc="loading data", unit="sample", file=sys.stderr, disable=None)
+    for i, stem in enumerate(it):
+        x = torch.from_numpy(load_sample(data_dir, stem, resolution))[None]
+        out[i] = encode_maps(ReflectanceMaps(x[:, :3], x[:, 3:4], x[:, 4:]), s).cat()[0]
+    return out

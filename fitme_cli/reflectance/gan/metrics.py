@@ -1,0 +1,107 @@
+"""Quality measures for BRDF-GAN against its training data, without ImageNet weights.
+
+- ``reflectance_features``: a descriptor of what the data generator varies, per UV region (8 regions):
+  for each of the 7 channels its mean, and its band-pass energy at 3 scales (a Laplacian pyramid:
+  pores at the finest, wrinkles and hair strands in the middle, freckles and stubble patches at the
+  coarsest). 8 x 7 x 4 = 224 dimensions. A Frechet distance in this space compares tone, redness,
+  beard, specular layout and detail statistics region by region; it has no learned weights, so it
+  cannot be fooled by features a network happens to ignore, and means the same on any machine.
+- ``modality_consistency``: does one sample's albedo darken where its normals show cavities? The
+  correlation between the albedo's band-pass luminance and the normals' divergence (concave < 0),
+  for matching pairs against mismatched pairs.
+- ``interpolation_smoothness``: the largest step of a latent walk relative to its mean step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = ["ChannelStats", "channel_stats", "reflectance_features", "frechet_distance", "modality_consistency",
+           "interpolation_smoothness"]
+
+
+@dataclass(frozen=True)
+class ChannelStats:
+    mean: list[float]  # 7 physical channels: A_D r, g, b (linear), A_S, N_S x, y, z
+    std: list[float]
+
+
+def channel_stats(phys: torch.Tensor, mask: torch.Tensor | None = None) -> ChannelStats:
+    """phys: (N, 7, R, R) physical maps; mask: (R, R) bool texels to count (default all)."""
+    x = phys.float().permute(1, 0, 2, 3).reshape(7, phys.shape[0], -1)
+    if mask is not None:
+        x = x[:, :, mask.flatten()]
+    x = x.reshape(7, -1)
+    return ChannelStats(x.mean(1).tolist(), x.std(1).tolist())
+
+
+def _bandpass(x: torch.Tensor, levels: int = 3) -> list[torch.Tensor]:
+    """Laplacian pyramid bands, each upsampled back to (N, C, R, R), finest first."""
+    bands, cur = [], x
+    r = x.shape[-1]
+    for _ in range(levels):
+        low = F.avg_pool2d(cur, 2)
+        up = F.interpolate(low, size=cur.shape[-2:], mode="bilinear", align_corners=False)
+        bands.append(F.interpolate(cur - up, size=(r, r), mode="nearest"))
+        cur = low
+    return bands
+
+
+def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:
+    """(N, 7, R, R) physical maps, (R, R) uint8 region labels (255 unmapped) -> (N, 224) float64."""
+    labels = [int(v) for v in torch.unique(regions) if int(v) != 255]
+    x = phys.float()
+    feats = []
+    bands = _bandpass(x)
+    for lab in sorted(labels):
+        m = (regions == lab).float()
+        area = m.sum().clamp(min=1)
+        feats.append((x * m).sum(dim=(2, 3)) / area)
+        for b in bands:
+            feats.append(((b.square() * m).sum(dim=(2, 3)) / area).sqrt())
+    return torch.cat(feats, 1).double().numpy()
+
+
+def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Frechet distance between Gaussians fitted to feature rows a (N, F) and b (M, F)."""
+    from scipy import linalg
+
+    mu1, mu2 = a.mean(0), b.mean(0)
+    s1, s2 = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
+    covmean, _ = linalg.sqrtm(s1 @ s2, disp=False)
+    covmean = covmean.real
+    return float(((mu1 - mu2) ** 2).sum() + np.trace(s1 + s2 - 2 * covmean))
+
+
+def _divergence(n: torch.Tensor) -> torch.Tensor:
+    """(N, 3, R, R) unit normals (+x = u right, +y = v up; image rows go down) -> (N, R, R) d nx/du + d ny/dv."""
+    dx = n[:, 0, :, 2:] - n[:, 0, :, :-2]
+    dy = n[:, 1, :-2, :] - n[:, 1, 2:, :]  # v grows upward: row above minus row below
+    return F.pad(dx, (1, 1))[:, :, :] + F.pad(dy, (0, 0, 1, 1))
+
+
+def modality_consistency(phys: torch.Tensor, mask: torch.Tensor) -> tuple[float, float]:
+    """(mean per-sample correlation of albedo detail with normal divergence for matching pairs, the same
+    for mismatched pairs (sample i's albedo with sample i+1's normals)). Cavities (divergence < 0) that
+    are darker give a positive correlation."""
+    lum = phys[:, 0:3].mean(1, keepdim=True)
+    detail = (lum - F.avg_pool2d(lum, 9, stride=1, padding=4, count_include_pad=False))[:, 0]
+    div = _divergence(phys[:, 4:7])
+
+    def corr(a, b):
+        a, b = a[:, mask], b[:, mask]
+        a = a - a.mean(1, keepdim=True)
+        b = b - b.mean(1, keepdim=True)
+        return (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1) + 1e-12)
+
+    return float(corr(detail, div).mean()), float(corr(detail, div.roll(1, 0)).mean())
+
+
+def interpolation_smoothness(images: torch.Tensor) -> float:
+    """images: (T, C, R, R) along a latent path. max step / mean step (1 = perfectly even)."""
+    steps = (images[1:] - images[:-1]).abs().mean(dim=(1, 2, 3))
+    return float(steps.max() / steps.mean().clamp(min=1e-12))

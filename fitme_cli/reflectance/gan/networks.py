@@ -1,0 +1,414 @@
+"""BRDF-GAN (FitMe Sec. 3.1): a StyleGAN2 generator whose blocks from ``branch_resolution`` up are
+copied per reflectance modality, and a residual discriminator with one branch for the albedos and one
+for the normals, joined before the last block.
+
+Network space: every channel spread over roughly unit scale, so that no modality is invisible to D (the
+paper's point about the albedos' and normals' very different statistics). ``encode_maps`` /
+``decode_maps`` convert to and from the physical maps (linear albedos, unit tangent-space normals):
+- A_D: 2 * sRGB(A_D) - 1 (3 ch). sRGB encoding because the GAN should spend its capacity evenly over
+  perceived tone, as the paper's 8-bit training textures did.
+- A_S: (A_S - specular_offset) / specular_scale (1 ch), linear.
+- N_S: (n_x, n_y, n_z - 1) / normal_scale (3 ch): detail normals deviate from +z by a few degrees, so
+  raw components would have a std of ~0.02; decoding renormalises.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from .ops import bias_lrelu, conv_down2x, downsample2x, modulated_conv2d, upsample2x
+
+__all__ = ["MODALITIES", "GanSettings", "GanImages", "ReflectanceMaps", "MappingNetwork", "SynthesisNetwork",
+           "Generator", "Discriminator", "encode_maps", "decode_maps"]
+
+MODALITIES = (("albedo", 3), ("specular", 1), ("normals", 3))  # name, channels; in this order in the 7-ch image
+N_CHANNELS = sum(c for _, c in MODALITIES)
+
+
+@dataclass(frozen=True)
+class GanSettings:
+    resolution: int = 256  # output maps are resolution^2
+    branch_resolution: int = 256  # blocks at this resolution and above are copied per modality
+    z_dim: int = 512
+    w_dim: int = 512
+    mapping_layers: int = 2  # StyleGAN2-ADA's "auto" config; 8 would triple the checkpoint for little gain here
+    mapping_lr_mul: float = 0.01
+    channel_base: int = 2048  # channels at resolution r: min(channel_base // r, channel_max)
+    channel_max: int = 128
+    conv_clamp: float | None = 256.0
+    w_avg_beta: float = 0.995  # the tracked W average (for truncation and for the fitting's start)
+    specular_offset: float = 0.1  # network-space encodings (module docstring); part of the model
+    specular_scale: float = 0.1
+    normal_scale: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("resolution", "branch_resolution"):
+            r = getattr(self, name)
+            if r < 8 or r & (r - 1):
+                raise ValueError(f"{name} must be a power of two >= 8, got {r}")
+        if self.branch_resolution > self.resolution:
+            raise ValueError(f"branch_resolution ({self.branch_resolution}) exceeds resolution ({self.resolution})")
+
+    def channels(self, res: int) -> int:
+        return max(1, min(self.channel_base // res, self.channel_max))
+
+    @property
+    def resolutions(self) -> list[int]:
+        return [2**i for i in range(2, int(math.log2(self.resolution)) + 1)]
+
+    @property
+    def num_ws(self) -> int:
+        """Style vectors the synthesis consumes: one per conv layer plus the final toRGB."""
+        return 2 * int(math.log2(self.resolution)) - 2
+
+
+@dataclass(frozen=True)
+class GanImages:
+    """Generator output in network space, each (B, C, R, R) float: albedo 3 ch, specular 1, normals 3."""
+
+    albedo: torch.Tensor
+    specular: torch.Tensor
+    normals: torch.Tensor
+
+    def cat(self) -> torch.Tensor:
+        """(B, 7, R, R) in MODALITIES order."""
+        return torch.cat([self.albedo, self.specular, self.normals], 1)
+
+    @staticmethod
+    def split(x: torch.Tensor) -> GanImages:
+        return GanImages(x[:, 0:3], x[:, 3:4], x[:, 4:7])
+
+
+@dataclass(frozen=True)
+class ReflectanceMaps:
+    """Physical maps, (B, C, R, R) float: albedo linear [0, 1] (3 ch); specular linear [0, 1] (1 ch);
+    normals unit tangent-space vectors (3 ch; +x along u, +y along v (up), +z out)."""
+
+    albedo: torch.Tensor
+    specular: torch.Tensor
+    normals: torch.Tensor
+
+
+def _srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(0, 1)
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def _linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(0, 1)
+    return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def decode_maps(images: GanImages, s: GanSettings) -> ReflectanceMaps:
+    """Network space -> physical maps (differentiable; values clamped into range)."""
+    albedo = _srgb_to_linear((images.albedo + 1) / 2)
+    specular = (images.specular * s.specular_scale + s.specular_offset).clamp(0, 1)
+    n = images.normals * s.normal_scale
+    # a generator may output z <= 0 early in training; keep the normal in the outward hemisphere
+    n = torch.cat([n[:, :2], (n[:, 2:3] + 1).clamp(min=1e-3)], 1)
+    return ReflectanceMaps(albedo, specular, torch.nn.functional.normalize(n, dim=1, eps=1e-6))
+
+
+def encode_maps(maps: ReflectanceMaps, s: GanSettings) -> GanImages:
+    """Physical maps -> network space (the inverse of ``decode_maps`` on in-range data)."""
+    n = maps.normals
+    n = torch.cat([n[:, :2], n[:, 2:3] - 1], 1) / s.normal_scale
+    return GanImages(_linear_to_srgb(maps.albedo) * 2 - 1, (maps.specular.clamp(0, 1) - s.specular_offset) / s.specular_scale, n)
+
+
+# --- layers with equalised learning rate -----------------------------------------------------------
+
+
+class _Linear(nn.Module):
+    def __init__(self, n_in: int, n_out: int, bias_init: float = 0.0, lr_mul: float = 1.0, act: bool = False):
+        super().__init__()
+        self.weight = nn.Parameter(torch.randn(n_out, n_in) / lr_mul)
+        self.bias = nn.Parameter(torch.full((n_out,), float(bias_init)))
+        self.w_gain, self.b_gain, self.act = lr_mul / math.sqrt(n_in), lr_mul, act
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = torch.nn.functional.linear(x, self.weight * self.w_gain)
+        b = self.bias * self.b_gain
+        return bias_lrelu(y, b) if self.act else y + b
+
+
+class _Conv(nn.Module):
+    """Plain conv (discriminator): optional 2x downsampling after the conv, bias + lrelu."""
+
+    def __init__(self, c_in: int, c_out: int, k: int, act: bool = True, bias: bool = True, down: bool = False,
+                 clamp: float | None = None):
+        super().__init__()
+        self.weight = nn.Parameter(torch.randn(c_out, c_in, k, k))
+        self.bias = nn.Parameter(torch.zeros(c_out)) if bias else None
+        self.gain, self.act, self.down, self.clamp = 1 / math.sqrt(c_in * k * k), act, down, clamp
+
+    def forward(self, x: torch.Tensor, gain: float = 1.0) -> torch.Tensor:
+        w = self.weight * self.gain
+        if self.down and w.shape[-1] == 1:
+            x = torch.nn.functional.conv2d(downsample2x(x), w)  # 1x1 skip: filter first, cheaper
+        elif self.down:
+            x = conv_down2x(x, w)
+        else:
+            x = torch.nn.functional.conv2d(x, w, padding=w.shape[-1] // 2)
+        if self.act:
+            return bias_lrelu(x, self.bias, gain=math.sqrt(2) * gain, clamp=self.clamp * gain if self.clamp else None)
+        if self.bias is not None:
+            x = x + self.bias.view(1, -1, 1, 1)
+        return x * gain
+
+
+# --- generator ---------------------------------------------------------------------------------------
+
+
+class MappingNetwork(nn.Module):
+    """z (B, z_dim) ~ N(0, I) -> w (B, w_dim); tracks the W average while training."""
+
+    def __init__(self, s: GanSettings):
+        super().__init__()
+        dims = [s.z_dim] + [s.w_dim] * s.mapping_layers
+        self.layers = nn.ModuleList(_Linear(a, b, lr_mul=s.mapping_lr_mul, act=True) for a, b in zip(dims[:-1], dims[1:]))
+        self.register_buffer("w_avg", torch.zeros(s.w_dim))
+        self.w_avg_beta = s.w_avg_beta
+
+    def forward(self, z: torch.Tensor, truncation_psi: float = 1.0, update_w_avg: bool = False) -> torch.Tensor:
+        x = z * torch.rsqrt(z.square().mean(1, keepdim=True) + 1e-8)
+        for layer in self.layers:
+            x = layer(x)
+        if update_w_avg:
+            self.w_avg.copy_(x.detach().mean(0).lerp(self.w_avg, self.w_avg_beta))
+        if truncation_psi != 1:
+            x = self.w_avg.lerp(x, truncation_psi)
+        return x
+
+
+class _SynthesisLayer(nn.Module):
+    def __init__(self, c_in: int, c_out: int, w_dim: int, res: int, up: bool, clamp: float | None):
+        super().__init__()
+        self.affine = _Linear(w_dim, c_in, bias_init=1.0)
+        self.weight = nn.Parameter(torch.randn(c_out, c_in, 3, 3))
+        self.bias = nn.Parameter(torch.zeros(c_out))
+        self.noise_strength = nn.Parameter(torch.zeros(()))
+        self.register_buffer("noise_const", torch.randn(res, res))
+        self.up, self.res, self.clamp = up, res, clamp
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor, noise_mode: str) -> torch.Tensor:
+        styles = self.affine(w)
+        x = modulated_conv2d(x, self.weight, styles, demodulate=True, up=self.up)
+        if noise_mode == "random":
+            x = x + torch.randn(x.shape[0], 1, self.res, self.res, device=x.device, dtype=x.dtype) * self.noise_strength
+        elif noise_mode == "const":
+            x = x + self.noise_const * self.noise_strength
+        return bias_lrelu(x, self.bias, clamp=self.clamp)
+
+
+class _ToImage(nn.Module):
+    def __init__(self, c_in: int, c_out: int, w_dim: int, clamp: float | None):
+        super().__init__()
+        self.affine = _Linear(w_dim, c_in, bias_init=1.0)
+        self.weight = nn.Parameter(torch.randn(c_out, c_in, 1, 1))
+        self.bias = nn.Parameter(torch.zeros(c_out))
+        self.gain, self.clamp = 1 / math.sqrt(c_in), clamp
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        y = modulated_conv2d(x, self.weight, self.affine(w) * self.gain, demodulate=False)
+        y = y + self.bias.view(1, -1, 1, 1)
+        return y.clamp(-self.clamp, self.clamp) if self.clamp else y
+
+
+class _SynthesisBlock(nn.Module):
+    """One resolution of the skip architecture: (conv0 with 2x up), conv1, toImage."""
+
+    def __init__(self, c_in: int, c_out: int, img_channels: int, res: int, s: GanSettings):
+        super().__init__()
+        self.res = res
+        self.conv0 = _SynthesisLayer(c_in, c_out, s.w_dim, res, up=True, clamp=s.conv_clamp) if res > 4 else None
+        self.conv1 = _SynthesisLayer(c_out, c_out, s.w_dim, res, up=False, clamp=s.conv_clamp)
+        self.to_image = _ToImage(c_out, img_channels, s.w_dim, s.conv_clamp)
+
+    def forward(self, x, img, ws, noise_mode):
+        """ws: (B, 3, w_dim) for conv0, conv1, toImage (the 4x4 block uses the last two)."""
+        if self.conv0 is not None:
+            x = self.conv0(x, ws[:, 0], noise_mode)
+        x = self.conv1(x, ws[:, 1], noise_mode)
+        y = self.to_image(x, ws[:, 2])
+        img = y if img is None else upsample2x(img) + y
+        return x, img
+
+
+class SynthesisNetwork(nn.Module):
+    """ws (B, num_ws, w_dim) -> GanImages. A shared trunk up to ``branch_resolution / 2``, then one stack of
+    blocks per modality, all reading the same ws (one identity, three consistent maps).
+
+    Our one addition to StyleGAN2: ``mean_image``, a learned (7, R, R) map added to the output,
+    initialised to the training data's mean. Every map shares the fixed UV layout, so the blocks only
+    have to learn the variation around the mean face; on a CPU budget of a few kimg this is the
+    difference between blobs and faces (measured: docs/brdf_gan.md)."""
+
+    def __init__(self, s: GanSettings):
+        super().__init__()
+        self.s = s
+        self.const = nn.Parameter(torch.randn(s.channels(4), 4, 4))
+        self.mean_image = nn.Parameter(torch.zeros(N_CHANNELS, s.resolution, s.resolution))
+        self.trunk = nn.ModuleDict()
+        self.branches = nn.ModuleDict({name: nn.ModuleDict() for name, _ in MODALITIES})
+        for res in s.resolutions:
+            c_in, c_out = s.channels(max(res // 2, 4)), s.channels(res)
+            if res < s.branch_resolution:
+                self.trunk[f"b{res}"] = _SynthesisBlock(c_in, c_out, N_CHANNELS, res, s)
+            else:
+                for name, ch in MODALITIES:
+                    self.branches[name][f"b{res}"] = _SynthesisBlock(c_in, c_out, ch, res, s)
+
+    def _w_slice(self, ws: torch.Tensor, res: int) -> torch.Tensor:
+        i = 2 * int(math.log2(res)) - 5  # conv0 index; b4 has no conv0 and starts at -1
+        idx = [max(i, 0), i + 1, i + 2]
+        return ws[:, idx]
+
+    def forward(self, ws: torch.Tensor, noise_mode: str = "random", max_resolution: int | None = None) -> GanImages:
+        """``max_resolution``: stop after that block (a power of two <= resolution) and return the
+        images at that resolution: the coarse-to-fine inversion's cheap early stage."""
+        s = self.s
+        if ws.ndim != 3 or ws.shape[1:] != (s.num_ws, s.w_dim):
+            raise ValueError(f"expected ws of shape (B, {s.num_ws}, {s.w_dim}), got {tuple(ws.shape)}")
+        if noise_mode not in ("random", "const", "none"):
+            raise ValueError(f"noise_mode must be random, const or none, got {noise_mode!r}")
+        top = s.resolution if max_resolution is None else max_resolution
+        if top not in s.resolutions:
+            raise ValueError(f"max_resolution must be one of {s.resolutions}, got {max_resolution}")
+        x = self.const.unsqueeze(0).expand(ws.shape[0], -1, -1, -1)
+        img = None
+        for res in s.resolutions:
+            if res >= s.branch_resolution or res > top:
+                break
+            x, img = self.trunk[f"b{res}"](x, img, self._w_slice(ws, res), noise_mode)
+        mean = self.mean_image[None]
+        if top < s.resolution:
+            mean = torch.nn.functional.adaptive_avg_pool2d(mean, top)
+        if top < s.branch_resolution:
+            return GanImages.split(img + mean)
+        outs = []
+        start = 0
+        for name, ch in MODALITIES:
+            xm, im = x, None if img is None else img[:, start : start + ch]
+            for res in s.resolutions:
+                if s.branch_resolution <= res <= top:
+                    xm, im = self.branches[name][f"b{res}"](xm, im, self._w_slice(ws, res), noise_mode)
+            outs.append(im + mean[:, start : start + ch])
+            start += ch
+        return GanImages(*outs)
+
+    def layer_names(self) -> list[str]:
+        """Conv layers in synthesis order, one name per W index ('b16.conv1'); branched layers are one
+        name covering their copies in every modality."""
+        names = []
+        for res in self.s.resolutions:
+            names += [f"b{res}.conv0"] if res > 4 else []
+            names += [f"b{res}.conv1"]
+        return names
+
+    def layer_parameters(self, name: str) -> list[nn.Parameter]:
+        """Parameters of a conv layer named as in ``layer_names`` (all branch copies for branched ones)."""
+        block, conv = name.split(".")
+        res = int(block[1:])
+        blocks = [self.trunk[block]] if res < self.s.branch_resolution else [self.branches[m][block] for m, _ in MODALITIES]
+        return [p for b in blocks for p in getattr(b, conv).parameters()]
+
+    def middle_layers(self, n: int = 4) -> list[str]:
+        """The n conv layers in the middle of the synthesis: what FitMe's tuning stage trains."""
+        names = self.layer_names()
+        if not 1 <= n <= len(names):
+            raise ValueError(f"n must be in 1..{len(names)}, got {n}")
+        start = (len(names) - n) // 2
+        return names[start : start + n]
+
+
+class Generator(nn.Module):
+    """z (B, z_dim) -> GanImages (B, ., R, R) via W (B, num_ws, w_dim)."""
+
+    def __init__(self, s: GanSettings = GanSettings()):
+        super().__init__()
+        self.settings = s
+        self.mapping = MappingNetwork(s)
+        self.synthesis = SynthesisNetwork(s)
+
+    @property
+    def w_avg(self) -> torch.Tensor:
+        """(w_dim,) the running mean of W: the inversion's starting point."""
+        return self.mapping.w_avg
+
+    def ws(self, z: torch.Tensor, truncation_psi: float = 1.0, update_w_avg: bool = False) -> torch.Tensor:
+        if z.ndim != 2 or z.shape[1] != self.settings.z_dim:
+            raise ValueError(f"expected z of shape (B, {self.settings.z_dim}), got {tuple(z.shape)}")
+        w = self.mapping(z, truncation_psi, update_w_avg)
+        return w.unsqueeze(1).repeat(1, self.settings.num_ws, 1)
+
+    def forward(self, z: torch.Tensor, truncation_psi: float = 1.0, noise_mode: str = "random") -> GanImages:
+        return self.synthesis(self.ws(z, truncation_psi), noise_mode)
+
+
+# --- discriminator -----------------------------------------------------------------------------------
+
+
+class _DBlock(nn.Module):
+    """Residual: (conv3x3, conv3x3 + down) + 1x1 down skip, scaled by sqrt(1/2)."""
+
+    def __init__(self, c_in: int, c_out: int, clamp: float | None):
+        super().__init__()
+        self.conv0 = _Conv(c_in, c_in, 3, clamp=clamp)
+        self.conv1 = _Conv(c_in, c_out, 3, down=True, clamp=clamp)
+        self.skip = _Conv(c_in, c_out, 1, act=False, bias=False, down=True)
+
+    def forward(self, x):
+        y = self.skip(x, gain=math.sqrt(0.5))
+        return y + self.conv1(self.conv0(x), gain=math.sqrt(0.5))
+
+
+class _DBranch(nn.Module):
+    def __init__(self, c_img: int, s: GanSettings):
+        super().__init__()
+        self.from_image = _Conv(c_img, s.channels(s.resolution), 1, clamp=s.conv_clamp)
+        self.blocks = nn.ModuleList(_DBlock(s.channels(r), s.channels(r // 2), s.conv_clamp)
+                                    for r in reversed(s.resolutions) if r > 4)
+
+    def forward(self, x):
+        x = self.from_image(x)
+        for b in self.blocks:
+            x = b(x)
+        return x
+
+
+class Discriminator(nn.Module):
+    """(B, 7, R, R) in network space -> (B,) logits. D_A sees A_D (+) A_S, D_N sees N_S; their 4x4
+    features are concatenated for the last block (minibatch std, conv, two fully connected layers)."""
+
+    def __init__(self, s: GanSettings = GanSettings(), mbstd_group: int = 4):
+        super().__init__()
+        self.settings, self.mbstd_group = s, mbstd_group
+        self.albedo_branch = _DBranch(4, s)
+        self.normal_branch = _DBranch(3, s)
+        c4 = s.channels(4)
+        self.conv = _Conv(2 * c4 + 1, c4, 3, clamp=s.conv_clamp)
+        self.fc = _Linear(c4 * 16, c4, act=True)
+        self.out = _Linear(c4, 1)
+
+    def _mbstd(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, h, w = x.shape
+        g = min(self.mbstd_group, b)
+        while b % g:
+            g -= 1
+        y = x.reshape(g, -1, c, h, w)
+        y = (y.var(0, unbiased=False) + 1e-8).sqrt().mean(dim=(1, 2, 3))  # (B/g,)
+        y = y.reshape(1, -1, 1, 1, 1).expand(g, -1, 1, h, w).reshape(b, 1, h, w)
+        return torch.cat([x, y], 1)
+
+    def forward(self, img: torch.Tensor) -> torch.Tensor:
+        r = self.settings.resolution
+        if img.ndim != 4 or img.shape[1:] != (N_CHANNELS, r, r):
+            raise ValueError(f"expected images of shape (B, {N_CHANNELS}, {r}, {r}), got {tuple(img.shape)}")
+        x = torch.cat([self.albedo_branch(img[:, :4]), self.normal_branch(img[:, 4:])], 1)
+        x = self.conv(self._mbstd(x))
+        return self.out(self.fc(x.flatten(1))).squeeze(1)

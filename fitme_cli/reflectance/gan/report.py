@@ -1,0 +1,186 @@
+"""Measure a trained BRDF-GAN run against its data and ship it: ``models/brdf_gan.*`` plus figures.
+
+    python -m fitme_cli.reflectance.gan.report RUN_DIR DATA_DIR -o models/ --figures docs/
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .data import load_dataset
+from .metrics import (channel_stats, frechet_distance, interpolation_smoothness, modality_consistency,
+                      reflectance_features)
+from .networks import GanImages, Generator, decode_maps
+from .store import save_generator
+from .train import copy_generator, load_checkpoint
+
+__all__ = ["evaluate", "main"]
+
+_CHANNELS = ("albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z")
+
+
+def _fake(G: Generator, n: int, seed: int, batch: int = 16) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    with torch.no_grad():
+        for i in range(0, n, batch):
+            z = torch.randn(min(batch, n - i), G.settings.z_dim, generator=g)
+            m = decode_maps(G(z, noise_mode="random"), G.settings)
+            out.append(torch.cat([m.albedo, m.specular, m.normals], 1))
+    return torch.cat(out)
+
+
+def _phys(data: torch.Tensor, G: Generator) -> torch.Tensor:
+    out = []
+    for i in range(0, len(data), 64):
+        m = decode_maps(GanImages.split(data[i : i + 64].float()), G.settings)
+        out.append(torch.cat([m.albedo, m.specular, m.normals], 1))
+    return torch.cat(out)
+
+
+def _encoded(stats_mean, stats_std):
+    """Normals' statistics in the [0, 1] image encoding (0.5 n + 0.5) as the paper reports them."""
+    mean = [m if i < 4 else 0.5 * m + 0.5 for i, m in enumerate(stats_mean)]
+    std = [s if i < 4 else 0.5 * s for i, s in enumerate(stats_std)]
+    return mean, std
+
+
+def evaluate(G: Generator, data_phys: torch.Tensor, regions: torch.Tensor, n_fake: int = 1000, seed: int = 0) -> dict:
+    """All card metrics. data_phys: (N, 7, R, R) physical maps; regions: (R, R) uint8 labels."""
+    mapped = regions != 255
+    fake = _fake(G, n_fake, seed)
+    fs, rs = channel_stats(fake, mapped), channel_stats(data_phys, mapped)
+    fm, fsd = _encoded(fs.mean, fs.std)
+    rm, rsd = _encoded(rs.mean, rs.std)
+    per_channel = {name: {"data_mean": round(rm[i], 4), "gan_mean": round(fm[i], 4),
+                          "mean_rel_diff": round(abs(fm[i] - rm[i]) / abs(rm[i]), 4),
+                          "data_std": round(rsd[i], 4), "gan_std": round(fsd[i], 4),
+                          "std_rel_diff": round(abs(fsd[i] - rsd[i]) / rsd[i], 4)} for i, name in enumerate(_CHANNELS)}
+    half = len(data_phys) // 2
+    fa = reflectance_features(data_phys[:half], regions)
+    fb = reflectance_features(data_phys[half:], regions)
+    ff = reflectance_features(fake, regions)
+    fd_gan = frechet_distance(ff[: len(fb)], fb)
+    fd_split = frechet_distance(fa, fb)
+    skin = torch.zeros_like(mapped)
+    for lab in (1, 2, 5):  # skin, forehead, nose: where the wrinkles and pores are
+        skin |= regions == lab
+    cons_fake = modality_consistency(fake[:200], skin)
+    cons_data = modality_consistency(data_phys[:200], skin)
+    g = torch.Generator().manual_seed(seed + 1)
+    ratios = []
+    with torch.no_grad():
+        for _ in range(8):
+            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g))
+            t = torch.linspace(0, 1, 16).view(-1, 1, 1)
+            walk = G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const").cat()
+            ratios.append(interpolation_smoothness(walk))
+    return {
+        "per_channel": per_channel,
+        "albedo_pooled_mean_std": [round(float(fake[:, :4][:, :, mapped].mean()), 4), round(float(fake[:, :4][:, :, mapped].std()), 4)],
+        "data_albedo_pooled_mean_std": [round(float(data_phys[:, :4][:, :, mapped].mean()), 4), round(float(data_phys[:, :4][:, :, mapped].std()), 4)],
+        "frechet_reflectance_features": {"gan_vs_heldout_half": round(fd_gan, 3), "half_vs_half": round(fd_split, 3),
+                                         "samples": [len(ff[: len(fb)]), len(fb)]},
+        "modality_consistency": {"gan_matched": round(cons_fake[0], 3), "gan_mismatched": round(cons_fake[1], 3),
+                                 "data_matched": round(cons_data[0], 3), "data_mismatched": round(cons_data[1], 3)},
+        "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
+    }
+
+
+def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
+    """brdf_gan_samples.png (16 GAN triplets), brdf_gan_data.png (16 training triplets),
+    brdf_gan_interpolation.png (4 latent walks, 8 steps, albedo and normals)."""
+    from ...io.atomic import atomic_write_image
+    from .train import sample_grid
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    z = torch.randn(16, G.settings.z_dim, generator=torch.Generator().manual_seed(7))
+    grid = sample_grid(G, z)
+    r = G.settings.resolution
+    two = np.concatenate([grid[: 8 * r], grid[8 * r :]], 1)  # 8 rows x 2 columns of triplets
+    atomic_write_image(out_dir / "brdf_gan_samples.png", two)
+    paths.append(out_dir / "brdf_gan_samples.png")
+
+    class _Fixed(torch.nn.Module):  # replays data through sample_grid's drawing
+        settings = G.settings
+
+        def __call__(self, z, truncation_psi=1.0, noise_mode="const"):
+            return GanImages.split(data[:16].float())
+
+    grid = sample_grid(_Fixed(), z)
+    atomic_write_image(out_dir / "brdf_gan_data.png", np.concatenate([grid[: 8 * r], grid[8 * r :]], 1))
+    paths.append(out_dir / "brdf_gan_data.png")
+
+    from .networks import _linear_to_srgb
+
+    rows = []
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for _ in range(4):
+            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g))
+            t = torch.linspace(0, 1, 8).view(-1, 1, 1)
+            m = decode_maps(G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const"), G.settings)
+            alb = _linear_to_srgb(m.albedo)
+            nrm = (m.normals * 2.5 + 0.5).clamp(0, 1)
+            crop = slice(r // 4, 3 * r // 4)  # the face
+            rows.append(torch.cat(list(torch.cat([alb, nrm], 2)[:, :, :, crop]), 2))
+    img = torch.cat(rows, 1).permute(1, 2, 0).numpy()
+    atomic_write_image(out_dir / "brdf_gan_interpolation.png", (img * 255 + 0.5).astype(np.uint8))
+    paths.append(out_dir / "brdf_gan_interpolation.png")
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    from safetensors.numpy import load_file
+
+    from ...perception.registry import ensure_models
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run_dir", type=Path)
+    ap.add_argument("data_dir", type=Path)
+    ap.add_argument("-o", "--models", type=Path, required=True)
+    ap.add_argument("--figures", type=Path)
+    ap.add_argument("--n-fake", type=int, default=1000)
+    ap.add_argument("--train-command", default="", help="recorded in the card")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    state = load_checkpoint(args.run_dir / "checkpoint.safetensors")
+    G = copy_generator(state.G_ema)
+    data = load_dataset(args.data_dir, G.settings, progress=True)
+    data_phys = _phys(data, G)
+    region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
+    import cv2
+
+    regions = torch.from_numpy(cv2.resize(region_uv, (G.settings.resolution,) * 2, interpolation=cv2.INTER_NEAREST))
+    metrics = evaluate(G, data_phys, regions, n_fake=args.n_fake)
+    data_card = json.loads((args.data_dir / "dataset.json").read_text()) if (args.data_dir / "dataset.json").is_file() else {}
+    card = {
+        "data": {"samples": len(data), "resolution": G.settings.resolution,
+                 "generator": "fitme dataset (fitme_cli/reflectance/skin_data.py)",
+                 "dataset_settings": data_card.get("settings"), "dataset_seed": data_card.get("seed")},
+        "training": {"kimg": round(state.nimg / 1000, 3), "steps": state.step, "wall_time_h": round(state.wall_time / 3600, 3),
+                     "train_settings": json.loads(json.dumps(state.train.__dict__)),
+                     "machine": "2 CPU cores (no GPU)", "command": args.train_command},
+        "metrics": metrics,
+        "report_command": "python -m fitme_cli.reflectance.gan.report " + " ".join(sys.argv[1:] if argv is None else argv),
+        "evaluation_seconds": round(time.perf_counter() - t0, 1),
+    }
+    save_generator(G, args.models, card)
+    if args.figures:
+        figures(G, data, args.figures)
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,51 @@
+"""The shipped BRDF-GAN: ``models/brdf_gan.safetensors`` (the EMA generator's weights, float32) with
+``models/brdf_gan.json`` beside it (settings, training data, kimg, wall time, measured quality)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from ...errors import ModelMissing
+from .networks import GanSettings, Generator
+
+__all__ = ["MODEL_NAME", "save_generator", "load_generator"]
+
+MODEL_NAME = "brdf_gan"
+
+
+def save_generator(G: Generator, models_dir: Path, card: dict) -> Path:
+    """Write NAME.safetensors (+ settings in its metadata) and NAME.json atomically; returns the weights path."""
+    from dataclasses import asdict
+
+    from safetensors.torch import save_file
+
+    models_dir = Path(models_dir)
+    models_dir.mkdir(parents=True, exist_ok=True)
+    path = models_dir / f"{MODEL_NAME}.safetensors"
+    tmp = path.with_name(path.name + ".tmp")
+    sd = {k: v.detach().float().contiguous() for k, v in G.state_dict().items()}
+    save_file(sd, str(tmp), metadata={"gan": json.dumps(asdict(G.settings))})
+    tmp.replace(path)
+    card_path = models_dir / f"{MODEL_NAME}.json"
+    tmp = card_path.with_name(card_path.name + ".tmp")
+    tmp.write_text(json.dumps({"name": MODEL_NAME, "settings": asdict(G.settings), **card}, indent=2) + "\n")
+    tmp.replace(card_path)
+    return path
+
+
+def load_generator(models_dir: Path, device: str | torch.device = "cpu") -> Generator:
+    """The shipped generator in eval mode with gradients off (the tuning stage turns on the layers it trains)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    path = Path(models_dir) / f"{MODEL_NAME}.safetensors"
+    if not path.is_file():
+        raise ModelMissing("BRDF-GAN weights are missing (they ship in the repository's models/ folder)", path)
+    with safe_open(str(path), "pt") as f:
+        settings = GanSettings(**json.loads(f.metadata()["gan"]))
+    G = Generator(settings)
+    G.load_state_dict(load_file(str(path)))
+    return G.to(device).eval().requires_grad_(False)

@@ -1,0 +1,328 @@
+"""BRDF-GAN training (StyleGAN2-ADA recipe, trimmed for a 2-core CPU): non-saturating logistic loss,
+lazy R1 on the reals, a generator EMA, style mixing, optional ADA-style augmentation. No path-length
+regularisation (it costs a second generator pass and matters little for fixed-layout UV maps).
+
+A run directory holds ``checkpoint.safetensors`` (everything needed to resume bit-exactly: G, D,
+G_ema, both Adam states, RNG state, counters; settings in its metadata), ``metrics.jsonl`` and
+``samples/`` grids.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .ada import augment
+from .networks import Discriminator, GanSettings, Generator
+
+__all__ = ["TrainSettings", "TrainState", "new_state", "train_step", "save_checkpoint", "load_checkpoint",
+           "copy_generator"]
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    batch: int = 8
+    kimg: float = 40.0  # training length in thousands of real images shown to D
+    g_lr: float = 0.0025
+    d_lr: float = 0.0025
+    beta2: float = 0.99  # Adam betas are (0, beta2), as StyleGAN2
+    r1_gamma: float = 1.0  # StyleGAN2-ADA's heuristic 0.0002 * R^2 / batch gives 1.6 at 256^2, batch 8
+    r1_interval: int = 16  # lazy regularisation
+    ema_kimg: float = 2.5  # EMA half-life: StyleGAN2-ADA's 10 kimg per batch 32, scaled to our batch
+    ema_rampup: float = 0.05
+    style_mixing: float = 0.9
+    ada: bool = False
+    ada_target: float = 0.6
+    ada_interval: int = 4
+    ada_kimg: float = 100.0  # p can move 0 -> 1 in this many kimg
+    snapshot_kimg: float = 1.0  # sample grid, metrics and checkpoint every this many kimg
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.batch < 2 or self.batch % 2:
+            raise ValueError(f"batch must be an even number >= 2, got {self.batch}")
+        if self.kimg <= 0:
+            raise ValueError(f"kimg must be > 0, got {self.kimg}")
+
+
+@dataclass
+class TrainState:
+    """Everything that changes during training (the one mutable record here)."""
+
+    gan: GanSettings
+    train: TrainSettings
+    G: Generator
+    D: Discriminator
+    G_ema: Generator
+    opt_G: torch.optim.Adam
+    opt_D: torch.optim.Adam
+    step: int = 0
+    nimg: int = 0
+    ada_p: float = 0.0
+    ada_acc: float = 0.0  # running sum of sign(D(real)) since the last p update
+    ada_n: int = 0
+    wall_time: float = 0.0  # seconds spent in training steps, over all sessions
+
+
+def copy_generator(G: Generator) -> Generator:
+    G2 = Generator(G.settings)
+    G2.load_state_dict(G.state_dict())
+    return G2.eval().requires_grad_(False)
+
+
+def new_state(gan: GanSettings, train: TrainSettings, data_mean: torch.Tensor | None = None) -> TrainState:
+    """Fresh networks and optimisers. ``data_mean``: (7, R, R) network-space mean of the training data,
+    the synthesis' initial ``mean_image``."""
+    torch.manual_seed(train.seed)
+    G, D = Generator(gan), Discriminator(gan)
+    if data_mean is not None:
+        with torch.no_grad():
+            G.synthesis.mean_image.copy_(data_mean)
+    G_ema = copy_generator(G)
+    c = train.r1_interval / (train.r1_interval + 1)  # lazy regularisation's lr / momentum correction
+    opt_G = torch.optim.Adam(G.parameters(), lr=train.g_lr, betas=(0.0, train.beta2), eps=1e-8)
+    opt_D = torch.optim.Adam(D.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
+    return TrainState(gan, train, G, D, G_ema, opt_G, opt_D)
+
+
+def _ws(state: TrainState, z: torch.Tensor) -> torch.Tensor:
+    """Mapped ws with style mixing: after a random layer cutoff the ws come from a second z."""
+    G, t = state.G, state.train
+    ws = G.ws(z, update_w_avg=True)
+    if t.style_mixing > 0 and torch.rand(()) < t.style_mixing:
+        cut = int(torch.randint(1, ws.shape[1], ()))
+        ws2 = G.ws(torch.randn_like(z))
+        ws = torch.cat([ws[:, :cut], ws2[:, cut:]], 1)
+    return ws
+
+
+def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
+    return state.D(augment(img, state.ada_p) if state.train.ada else img)
+
+
+def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
+    """One G step and one D step on ``reals`` (batch, 7, R, R) network space. Returns the losses."""
+    t, G, D = state.train, state.G, state.D
+    b = reals.shape[0]
+    G.train()
+    D.train()
+    # generator: softplus(-D(G(z)))
+    G.requires_grad_(True)
+    D.requires_grad_(False)
+    z = torch.randn(b, state.gan.z_dim)
+    fake = G.synthesis(_ws(state, z)).cat()
+    loss_g = F.softplus(-_d(state, fake)).mean()
+    state.opt_G.zero_grad(set_to_none=True)
+    loss_g.backward()
+    state.opt_G.step()
+    # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
+    G.requires_grad_(False)
+    D.requires_grad_(True)
+    with torch.no_grad():
+        fake = G.synthesis(_ws(state, torch.randn(b, state.gan.z_dim))).cat()
+    do_r1 = t.r1_gamma > 0 and state.step % t.r1_interval == 0
+    real_in = reals.detach().requires_grad_(do_r1)
+    logits_real = _d(state, real_in)
+    loss_d = F.softplus(_d(state, fake)).mean() + F.softplus(-logits_real).mean()
+    loss_r1 = torch.zeros(())
+    if do_r1:
+        (grad,) = torch.autograd.grad(logits_real.sum(), real_in, create_graph=True)
+        loss_r1 = grad.square().sum(dim=(1, 2, 3)).mean() * (t.r1_gamma / 2)
+    state.opt_D.zero_grad(set_to_none=True)
+    (loss_d + loss_r1 * t.r1_interval).backward()
+    state.opt_D.step()
+    # ADA heuristic: r_t = E[sign(D(real))]
+    if t.ada:
+        state.ada_acc += float(logits_real.detach().sign().sum())
+        state.ada_n += b
+        if (state.step + 1) % t.ada_interval == 0:
+            rt = state.ada_acc / max(state.ada_n, 1)
+            adjust = math.copysign(1, rt - t.ada_target) * state.ada_n / (t.ada_kimg * 1000)
+            state.ada_p = float(min(max(state.ada_p + adjust, 0.0), 1.0))
+            state.ada_acc, state.ada_n = 0.0, 0
+    # EMA of the generator weights; buffers (w_avg, const noise) copied
+    ema_nimg = t.ema_kimg * 1000
+    if t.ema_rampup:
+        ema_nimg = min(ema_nimg, (state.nimg + b) * t.ema_rampup)
+    beta = 0.5 ** (b / max(ema_nimg, 1e-8))
+    with torch.no_grad():
+        for pe, p in zip(state.G_ema.parameters(), G.parameters()):
+            pe.copy_(p.lerp(pe, beta))
+        for be, bb in zip(state.G_ema.buffers(), G.buffers()):
+            be.copy_(bb)
+    state.step += 1
+    state.nimg += b
+    return {"loss_g": float(loss_g.detach()), "loss_d": float(loss_d.detach()),
+            "loss_r1": float(loss_r1.detach()) if do_r1 else float("nan"),
+            "real_logit": float(logits_real.detach().mean()), "ada_p": state.ada_p}
+
+
+# --- checkpoints ------------------------------------------------------------------------------------
+
+
+def _opt_tensors(prefix: str, opt: torch.optim.Optimizer) -> dict[str, torch.Tensor]:
+    out = {}
+    for i, st in opt.state_dict()["state"].items():
+        for k, v in st.items():
+            out[f"{prefix}.{i}.{k}"] = v if torch.is_tensor(v) else torch.tensor(v)
+    return out
+
+
+def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor]) -> None:
+    sd = opt.state_dict()
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for key, v in tensors.items():
+        if key.startswith(prefix + "."):
+            _, i, k = key.split(".")
+            state.setdefault(int(i), {})[k] = v.clone()
+    sd["state"] = state
+    opt.load_state_dict(sd)
+
+
+def save_checkpoint(state: TrainState, path: Path) -> None:
+    """Atomic: written beside ``path`` then renamed. safetensors only; settings in the metadata."""
+    from safetensors.torch import save_file
+
+    tensors: dict[str, torch.Tensor] = {}
+    for name, module in (("G", state.G), ("D", state.D), ("G_ema", state.G_ema)):
+        tensors.update({f"{name}.{k}": v.detach().contiguous() for k, v in module.state_dict().items()})
+    tensors.update(_opt_tensors("opt_G", state.opt_G))
+    tensors.update(_opt_tensors("opt_D", state.opt_D))
+    tensors["rng.torch"] = torch.get_rng_state()
+    meta = {"gan": json.dumps(asdict(state.gan)), "train": json.dumps(asdict(state.train)),
+            "counters": json.dumps({"step": state.step, "nimg": state.nimg, "ada_p": state.ada_p,
+                                    "ada_acc": state.ada_acc, "ada_n": state.ada_n, "wall_time": state.wall_time})}
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata=meta)
+    tmp.replace(path)
+
+
+def _settings(cls, d: dict):
+    names = {f.name for f in fields(cls)}
+    return cls(**{k: v for k, v in d.items() if k in names})
+
+
+def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainState:
+    """Restore a TrainState. ``train`` overrides the stored train settings (e.g. a longer ``kimg``)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    with safe_open(str(path), "pt") as f:
+        meta = f.metadata()
+    gan = _settings(GanSettings, json.loads(meta["gan"]))
+    stored = _settings(TrainSettings, json.loads(meta["train"]))
+    state = new_state(gan, train or stored)
+    tensors = load_file(str(path))
+    for name, module in (("G", state.G), ("D", state.D), ("G_ema", state.G_ema)):
+        module.load_state_dict({k[len(name) + 1 :]: v for k, v in tensors.items() if k.startswith(name + ".")})
+    _load_opt("opt_G", state.opt_G, tensors)
+    _load_opt("opt_D", state.opt_D, tensors)
+    torch.set_rng_state(tensors["rng.torch"])
+    for k, v in json.loads(meta["counters"]).items():
+        setattr(state, k, v)
+    return state
+
+
+def sample_grid(G: Generator, z: torch.Tensor, truncation_psi: float = 1.0) -> np.ndarray:
+    """(rows * R, 3 * R, 3) uint8: per row A_D (sRGB) | A_S (grey) | N_S (0.5 + 2.5 n, contrast x5)."""
+    from .networks import decode_maps
+    from .networks import _linear_to_srgb
+
+    with torch.no_grad():
+        maps = decode_maps(G(z, truncation_psi=truncation_psi, noise_mode="const"), G.settings)
+    alb = _linear_to_srgb(maps.albedo)
+    spec = maps.specular.expand(-1, 3, -1, -1).clamp(0, 1)
+    nrm = maps.normals * 2.5 + 0.5  # tangent normals x5: detail normals are within a few degrees of +z
+    rows = torch.cat([alb, spec, nrm], 3)  # (B, 3, R, 3R)
+    grid = torch.cat(list(rows), 1)  # (3, B*R, 3R)
+    return (grid.permute(1, 2, 0).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+# --- the loop -----------------------------------------------------------------------------------------
+
+
+def _channel_stats(x: torch.Tensor) -> tuple[list[float], list[float]]:
+    x = x.float()
+    return x.mean(dim=(0, 2, 3)).tolist(), x.std(dim=(0, 2, 3)).tolist()
+
+
+GRID_SEED = 1234  # the sample grid always shows the same latents, so runs and snapshots compare
+
+
+def snapshot(state: TrainState, run_dir: Path, data: torch.Tensor, losses: list[dict[str, float]], rate: float) -> dict:
+    """Write the sample grid, append a metrics line and save the checkpoint. Returns the metrics."""
+    from ...io.atomic import atomic_write_image
+
+    run_dir = Path(run_dir)
+    (run_dir / "samples").mkdir(parents=True, exist_ok=True)
+    kimg = state.nimg / 1000
+    z = torch.randn(8, state.gan.z_dim, generator=torch.Generator().manual_seed(GRID_SEED))
+    atomic_write_image(run_dir / "samples" / f"kimg{kimg:07.2f}.png", sample_grid(state.G_ema, z))
+    with torch.no_grad():
+        fake = torch.cat([state.G_ema(torch.randn(8, state.gan.z_dim, generator=torch.Generator().manual_seed(i)),
+                                      noise_mode="random").cat() for i in range(4)])
+    idx = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[:32]
+    fm, fs = _channel_stats(fake)
+    rm, rs = _channel_stats(data[idx])
+    mean = {}
+    for k in losses[0] if losses else {}:
+        vals = [d[k] for d in losses if np.isfinite(d[k])]
+        mean[k] = float(np.mean(vals)) if vals else float("nan")
+    rec = {"kimg": round(kimg, 3), "step": state.step, "wall_time_s": round(state.wall_time, 1), "img_per_s": round(rate, 2),
+           **{k: round(v, 4) for k, v in mean.items()},
+           "fake_mean": [round(v, 3) for v in fm], "fake_std": [round(v, 3) for v in fs],
+           "real_mean": [round(v, 3) for v in rm], "real_std": [round(v, 3) for v in rs]}
+    with open(run_dir / "metrics.jsonl", "a") as f:
+        f.write(json.dumps(rec) + "\n")
+    save_checkpoint(state, run_dir / "checkpoint.safetensors")
+    return rec
+
+
+def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool = True,
+          max_steps: int | None = None) -> TrainState:
+    """Train until ``state.train.kimg`` (or ``max_steps`` more steps), snapshotting into ``run_dir``.
+    ``data``: (N, 7, R, R) network space at the generator's resolution."""
+    import sys
+    import time
+
+    from tqdm import tqdm
+
+    t, r = state.train, state.gan.resolution
+    if data.ndim != 4 or data.shape[1:] != (7, r, r):
+        raise ValueError(f"expected data of shape (N, 7, {r}, {r}), got {tuple(data.shape)}")
+    total = int(t.kimg * 1000)
+    snap_every = max(int(t.snapshot_kimg * 1000), t.batch)
+    next_snap = (state.nimg // snap_every + 1) * snap_every
+    bar = tqdm(total=total, initial=min(state.nimg, total), unit="img", desc="train", file=sys.stderr,
+               disable=not progress, dynamic_ncols=True)
+    losses: list[dict[str, float]] = []
+    steps = 0
+    window_t, window_n = time.perf_counter(), state.nimg
+    rate = 0.0
+    while state.nimg < total and (max_steps is None or steps < max_steps):
+        idx = torch.randint(0, len(data), (t.batch,))
+        reals = data[idx].float()
+        t0 = time.perf_counter()
+        losses.append(train_step(state, reals))
+        state.wall_time += time.perf_counter() - t0
+        steps += 1
+        bar.update(t.batch)
+        post = {"g": f"{losses[-1]['loss_g']:.2f}", "d": f"{losses[-1]['loss_d']:.2f}"}
+        if t.ada:
+            post["p"] = f"{state.ada_p:.2f}"
+        bar.set_postfix(post, refresh=False)
+        if state.nimg >= next_snap or state.nimg >= total:
+            rate = (state.nimg - window_n) / max(time.perf_counter() - window_t, 1e-9)
+            snapshot(state, run_dir, data, losses, rate)
+            losses = []
+            window_t, window_n = time.perf_counter(), state.nimg
+            next_snap += snap_every
+    bar.close()
+    return state

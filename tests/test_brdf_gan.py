@@ -1,0 +1,326 @@
+"""BRDF-GAN: ops against their references, G/D shapes and branches, training, checkpoints, data."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from fitme_cli.reflectance.gan import ops
+from fitme_cli.reflectance.gan.ada import augment
+from fitme_cli.reflectance.gan.networks import (Discriminator, GanImages, GanSettings, Generator, ReflectanceMaps,
+                                                decode_maps, encode_maps)
+from fitme_cli.reflectance.gan.train import (TrainSettings, load_checkpoint, new_state, save_checkpoint, train,
+                                             train_step)
+
+TINY = GanSettings(resolution=16, branch_resolution=8, channel_base=64, channel_max=16, z_dim=32, w_dim=32)
+
+
+@pytest.fixture(autouse=True)
+def _seed_and_one_thread():
+    """Tiny nets run faster on one thread (and do not fight a training run for the cores)."""
+    torch.manual_seed(0)
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+# --- ops ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("up", [False, True])
+def test_modulated_conv_matches_per_sample_weights(up):
+    x = torch.randn(3, 4, 8, 8, dtype=torch.float64)
+    w = torch.randn(5, 4, 3, 3, dtype=torch.float64)
+    s = torch.randn(3, 4, dtype=torch.float64)
+    fast, ref = ops.modulated_conv2d(x, w, s, up=up), ops._modulated_conv2d_ref(x, w, s, up=up)
+    assert fast.shape == (3, 5, 16 if up else 8, 16 if up else 8)
+    torch.testing.assert_close(fast, ref, rtol=1e-10, atol=1e-10)
+    # demodulation: unit-variance inputs give about unit-variance outputs
+    y = ops.modulated_conv2d(torch.randn(8, 64, 16, 16), torch.randn(32, 64, 3, 3), torch.rand(8, 64) + 0.5)
+    assert 0.8 < y.std() < 1.2
+
+
+@pytest.mark.parametrize("up", [False, True])
+def test_modulated_conv_gradients_match_reference(up):
+    args = [torch.randn(2, 3, 4, 4, dtype=torch.float64, requires_grad=True),
+            torch.randn(2, 3, 3, 3, dtype=torch.float64, requires_grad=True),
+            torch.randn(2, 3, dtype=torch.float64, requires_grad=True)]
+    assert torch.autograd.gradcheck(lambda *a: ops.modulated_conv2d(*a, up=up), args)
+    g_fast = torch.autograd.grad(ops.modulated_conv2d(*args, up=up).square().sum(), args)
+    g_ref = torch.autograd.grad(ops._modulated_conv2d_ref(*args, up=up).square().sum(), args)
+    for a, b in zip(g_fast, g_ref):
+        torch.testing.assert_close(a, b)
+
+
+def test_resampling_matches_references():
+    x = torch.randn(2, 3, 8, 8, dtype=torch.float64)
+    w = torch.randn(4, 3, 3, 3, dtype=torch.float64)
+    torch.testing.assert_close(ops.upsample2x(x), ops._upsample2x_ref(x))
+    torch.testing.assert_close(ops.downsample2x(x), ops._downsample2x_ref(x))
+    torch.testing.assert_close(ops.conv_up2x(x, w), ops._conv_up2x_ref(x, w))
+    torch.testing.assert_close(ops.conv_down2x(x, w), ops._conv_down2x_ref(x, w))
+    # known values: constants stay constant away from borders; an impulse lands at the right place
+    one = torch.ones(1, 1, 8, 8, dtype=torch.float64)
+    assert torch.allclose(ops.upsample2x(one), torch.ones(1, 1, 16, 16, dtype=torch.float64))
+    imp = torch.zeros(1, 1, 8, 8, dtype=torch.float64)
+    imp[0, 0, 3, 3] = 1
+    centre = torch.zeros(1, 1, 3, 3, dtype=torch.float64)
+    centre[0, 0, 1, 1] = 1
+    y = ops.conv_up2x(imp, centre)[0, 0]
+    rows = torch.arange(16, dtype=torch.float64)
+    assert float((y.sum(1) * rows).sum() / y.sum()) == pytest.approx(6.5)  # input texel 3 covers 6 and 7
+    assert float(y.sum()) == pytest.approx(4.0)  # gain 4: a 2x upsampler keeps the mean
+
+
+def test_bad_modulated_conv_input_says_what_it_got():
+    with pytest.raises(ValueError, match=r"styles \(2, 5\)"):
+        ops.modulated_conv2d(torch.randn(2, 4, 8, 8), torch.randn(5, 4, 3, 3), torch.randn(2, 5))
+
+
+# --- networks -------------------------------------------------------------------------------------------
+
+
+def test_generator_shapes_ranges_and_decoding():
+    G = Generator(TINY)
+    z = torch.randn(3, TINY.z_dim)
+    out = G(z)
+    assert out.albedo.shape == (3, 3, 16, 16) and out.specular.shape == (3, 1, 16, 16) and out.normals.shape == (3, 3, 16, 16)
+    assert out.cat().shape == (3, 7, 16, 16) and torch.isfinite(out.cat()).all()
+    maps = decode_maps(out, TINY)
+    assert 0 <= maps.albedo.min() and maps.albedo.max() <= 1 and 0 <= maps.specular.min() and maps.specular.max() <= 1
+    torch.testing.assert_close(maps.normals.norm(dim=1), torch.ones(3, 16, 16))
+    assert (maps.normals[:, 2] > 0).all()
+    # coarse-to-fine: the synthesis stops early and returns all modalities at that resolution
+    ws = G.ws(z)
+    assert ws.shape == (3, TINY.num_ws, TINY.w_dim) == (3, 6, 32)
+    for r in (4, 8):
+        low = G.synthesis(ws, max_resolution=r)
+        assert low.albedo.shape[-1] == r and low.specular.shape[1] == 1 and low.normals.shape[1] == 3
+    with pytest.raises(ValueError, match="max_resolution must be one of"):
+        G.synthesis(ws, max_resolution=12)
+    with pytest.raises(ValueError, match=r"expected ws of shape \(B, 6, 32\), got \(3, 5, 32\)"):
+        G.synthesis(ws[:, :5])
+    with pytest.raises(ValueError, match="expected z of shape"):
+        G(torch.randn(3, 7))
+
+
+def test_encode_decode_round_trip():
+    n = torch.nn.functional.normalize(torch.randn(2, 3, 8, 8) * torch.tensor([0.1, 0.1, 0.1]).view(1, 3, 1, 1)
+                                      + torch.tensor([0, 0, 1.0]).view(1, 3, 1, 1), dim=1)
+    maps = ReflectanceMaps(torch.rand(2, 3, 8, 8), torch.rand(2, 1, 8, 8), n)
+    back = decode_maps(encode_maps(maps, TINY), TINY)
+    for a, b in zip((maps.albedo, maps.specular, maps.normals), (back.albedo, back.specular, back.normals)):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+
+
+def test_discriminator_shape_and_bad_input():
+    D = Discriminator(TINY)
+    assert D(torch.randn(4, 7, 16, 16)).shape == (4,)
+    assert D(torch.randn(3, 7, 16, 16)).shape == (3,)  # minibatch-std group adapts
+    with pytest.raises(ValueError, match=r"expected images of shape \(B, 7, 16, 16\), got \(4, 6, 16, 16\)"):
+        D(torch.randn(4, 6, 16, 16))
+
+
+def test_every_branch_receives_gradients():
+    G, D = Generator(TINY), Discriminator(TINY)
+    D(G(torch.randn(4, TINY.z_dim)).cat()).sum().backward()
+    for name, p in list(G.named_parameters()) + list(D.named_parameters()):
+        if "noise_strength" in name:
+            continue  # starts at 0 with zero gradient only through lrelu's kink: checked below
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    for branch in ("albedo", "specular", "normals"):
+        assert any(n.startswith(f"synthesis.branches.{branch}.") for n, _ in G.named_parameters())
+    assert G.synthesis.branches["normals"]["b16"].conv1.noise_strength.grad is not None
+
+
+def test_branches_see_only_their_modality():
+    """D_A must react to the albedos and not to the normals before the join, and vice versa."""
+    D = Discriminator(TINY)
+    x = torch.randn(2, 7, 16, 16, requires_grad=True)
+    D.albedo_branch(x[:, :4]).sum().backward()
+    assert x.grad[:, :4].abs().sum() > 0 and x.grad[:, 4:].abs().sum() == 0
+
+
+def test_named_layers_and_middle_four():
+    s = GanSettings(resolution=256, branch_resolution=256, channel_base=64, channel_max=8, z_dim=8, w_dim=8)
+    G = Generator(s)
+    names = G.synthesis.layer_names()
+    assert len(names) == s.num_ws - 1 == 13 and names[0] == "b4.conv1" and names[-1] == "b256.conv1"
+    assert G.synthesis.middle_layers(4) == ["b16.conv1", "b32.conv0", "b32.conv1", "b64.conv0"]
+    trunk = G.synthesis.layer_parameters("b32.conv0")
+    branched = G.synthesis.layer_parameters("b256.conv1")
+    assert len(branched) == 3 * len(trunk)  # one copy per modality
+    with pytest.raises(ValueError, match="n must be in 1..13"):
+        G.synthesis.middle_layers(14)
+
+
+def test_w_average_is_tracked_and_truncation_pulls_to_it():
+    G = Generator(TINY)
+    assert G.w_avg.abs().sum() == 0
+    G.ws(torch.randn(64, TINY.z_dim), update_w_avg=True)
+    assert G.w_avg.abs().sum() > 0
+    a = G(torch.randn(2, TINY.z_dim), truncation_psi=0.0, noise_mode="const").cat()
+    torch.testing.assert_close(a[0], a[1])  # psi = 0: every z maps to the average
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="power of two"):
+        GanSettings(resolution=100)
+    with pytest.raises(ValueError, match="exceeds resolution"):
+        GanSettings(resolution=64, branch_resolution=128)
+    with pytest.raises(ValueError, match="even number"):
+        TrainSettings(batch=3)
+
+
+def test_ada_augment():
+    x = torch.randn(4, 7, 16, 16, requires_grad=True)
+    assert augment(x, 0.0) is x
+    y = augment(x, 1.0, torch.Generator().manual_seed(0))
+    assert y.shape == x.shape and torch.isfinite(y).all()
+    y.sum().backward()
+    assert x.grad is not None
+    # the normals keep their magnitude (flips and shifts only move and mirror them)
+    torch.testing.assert_close(y[:, 4:].square().sum(), x[:, 4:].square().sum())
+
+
+# --- training -------------------------------------------------------------------------------------------
+
+
+def _tiny_data(n=16, r=16):
+    """Structured maps: a warm albedo gradient, brighter specular in the middle, normals tilted in x."""
+    g = torch.Generator().manual_seed(1)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, r), torch.linspace(-1, 1, r), indexing="ij")
+    albedo = torch.stack([0.5 + 0.1 * yy, 0.3 + 0.05 * yy, 0.2 + 0 * yy])[None].repeat(n, 1, 1, 1)
+    albedo = albedo * (1 + 0.1 * torch.rand(n, 1, 1, 1, generator=g))
+    spec = (0.3 - 0.2 * (xx**2 + yy**2)).clamp(0.05)[None, None].repeat(n, 1, 1, 1)
+    nrm = torch.nn.functional.normalize(torch.stack([0.05 * torch.sin(4 * xx), 0 * xx, 1 + 0 * xx])[None].repeat(n, 1, 1, 1), dim=1)
+    return encode_maps(ReflectanceMaps(albedo, spec, nrm), TINY).cat()
+
+
+def test_a_few_steps_on_tiny_data_lower_the_loss():
+    data = _tiny_data()
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01))
+    with torch.no_grad():
+        before = (state.G(torch.randn(32, TINY.z_dim)).cat().mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean()
+    losses = [train_step(state, data[torch.randint(0, 16, (8,))]) for _ in range(60)]
+    with torch.no_grad():
+        after = (state.G(torch.randn(32, TINY.z_dim)).cat().mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean()
+    assert after < 0.5 * before  # G moved toward the data
+    d_first = np.mean([d["loss_d"] for d in losses[:5]])
+    assert d_first > 1.0 and min(d["loss_d"] for d in losses) < d_first  # D learned to tell them apart
+    assert all(np.isfinite(d["loss_g"]) and np.isfinite(d["loss_d"]) for d in losses)
+    assert state.nimg == 480 and state.step == 60
+
+
+def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
+    data = _tiny_data()
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
+    for _ in range(3):
+        train_step(state, data[:4])
+    save_checkpoint(state, tmp_path / "ck.safetensors")
+    loaded = load_checkpoint(tmp_path / "ck.safetensors")
+    for a, b in ((state.G, loaded.G), (state.D, loaded.D), (state.G_ema, loaded.G_ema)):
+        for (ka, va), (kb, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+            assert ka == kb and torch.equal(va, vb), ka
+    assert (loaded.step, loaded.nimg, loaded.ada_p) == (state.step, state.nimg, state.ada_p)
+    assert loaded.gan == state.gan and loaded.train == state.train
+    # two more steps from the file give bit-identical weights to two more steps in memory
+    train_step(state, data[4:8])
+    train_step(state, data[8:12])
+    loaded = load_checkpoint(tmp_path / "ck.safetensors")  # restores the RNG as it was at saving
+    train_step(loaded, data[4:8])
+    train_step(loaded, data[8:12])
+    for (ka, va), (_, vb) in zip(state.G.state_dict().items(), loaded.G.state_dict().items()):
+        assert torch.equal(va, vb), ka
+    for (ka, va), (_, vb) in zip(state.D.state_dict().items(), loaded.D.state_dict().items()):
+        assert torch.equal(va, vb), ka
+
+
+def test_train_loop_snapshots(tmp_path):
+    data = _tiny_data()
+    state = new_state(TINY, TrainSettings(batch=4, kimg=0.016, snapshot_kimg=0.008))
+    train(state, data, tmp_path, progress=False)
+    lines = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [x["kimg"] for x in lines] == [0.008, 0.016]
+    assert len(lines[0]["fake_mean"]) == 7 and np.isfinite(lines[-1]["loss_g"])
+    assert sorted(p.name for p in (tmp_path / "samples").iterdir()) == ["kimg0000.01.png", "kimg0000.02.png"]
+    import cv2
+
+    grid = cv2.imread(str(tmp_path / "samples" / "kimg0000.02.png"))
+    assert grid.shape == (8 * 16, 3 * 16, 3)
+    assert (tmp_path / "checkpoint.safetensors").is_file()
+    with pytest.raises(ValueError, match=r"expected data of shape \(N, 7, 16, 16\)"):
+        train(state, data[:, :6], tmp_path, progress=False)
+
+
+# --- data and the command line --------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory, models_root):
+    from fitme_cli.cli import main
+
+    out = tmp_path_factory.mktemp("skin")
+    r = CliRunner().invoke(main, ["dataset", str(out), "-n", "8", "--size", "64", "--seed", "3"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_dataset_loads_into_network_space(dataset_dir):
+    from fitme_cli.reflectance.gan.data import find_samples, load_dataset, load_sample
+
+    assert len(find_samples(dataset_dir)) == 8
+    s = GanSettings(resolution=32, branch_resolution=32, channel_base=64, z_dim=8, w_dim=8)
+    data = load_dataset(dataset_dir, s)
+    assert data.shape == (8, 7, 32, 32) and data.dtype == torch.float16 and torch.isfinite(data).all()
+    phys = torch.from_numpy(load_sample(dataset_dir, find_samples(dataset_dir)[0], 32))
+    back = decode_maps(GanImages.split(data[:1].float()), s)
+    torch.testing.assert_close(back.albedo[0], phys[:3], atol=2e-3, rtol=1e-2)  # float16 storage
+    torch.testing.assert_close(back.normals[0], phys[4:], atol=2e-3, rtol=1e-2)
+
+
+def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path):
+    from fitme_cli.cli import main
+
+    run = tmp_path / "run"
+    args = ["train", str(dataset_dir), "-o", str(run), "--resolution", "16", "--branch-resolution", "8",
+            "--channel-base", "64", "--channel-max", "16", "--batch", "4", "--kimg", "0.008", "--snapshot-kimg", "0.004",
+            "--threads", "1"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert (run / "checkpoint.safetensors").is_file() and len(list((run / "samples").iterdir())) == 2
+    assert json.loads((run / "config.json").read_text())["gan"]["resolution"] == 16
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 17 and "--resume" in r.output
+    r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert load_checkpoint(run / "checkpoint.safetensors").nimg == 16
+    r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "other"), "--resume"])
+    assert r.exit_code == 10 and "nothing to resume" in r.output
+    r = CliRunner().invoke(main, ["train", str(tmp_path / "missing"), "-o", str(tmp_path / "x"), "--resolution", "16"])
+    assert r.exit_code == 10 and "not found" in r.output
+    r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "y"), "--resolution", "100"])
+    assert r.exit_code == 2 and "power of two" in r.output
+
+
+def test_shipped_generator_round_trip(tmp_path):
+    from fitme_cli.errors import ModelMissing
+    from fitme_cli.reflectance.gan.store import load_generator, save_generator
+
+    G = Generator(TINY)
+    G.ws(torch.randn(16, TINY.z_dim), update_w_avg=True)
+    save_generator(G, tmp_path, {"training": {"kimg": 0}})
+    G2 = load_generator(tmp_path)
+    assert G2.settings == TINY and not any(p.requires_grad for p in G2.parameters())
+    for (k, a), (_, b) in zip(G.state_dict().items(), G2.state_dict().items()):
+        assert torch.equal(a, b), k
+    z = torch.randn(2, TINY.z_dim)
+    torch.testing.assert_close(G(z, noise_mode="const").cat(), G2(z, noise_mode="const").cat(), rtol=0, atol=0)
+    assert json.loads((tmp_path / "brdf_gan.json").read_text())["settings"]["resolution"] == 16
+    with pytest.raises(ModelMissing):
+        load_generator(tmp_path / "nowhere")
