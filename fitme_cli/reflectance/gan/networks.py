@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..maps import ReflectanceMaps
 from .ops import bias_lrelu, conv_down2x, downsample2x, modulated_conv2d, upsample2x
 
 __all__ = ["MODALITIES", "GanSettings", "GanImages", "ReflectanceMaps", "MappingNetwork", "SynthesisNetwork",
@@ -81,16 +82,6 @@ class GanImages:
     @staticmethod
     def split(x: torch.Tensor) -> GanImages:
         return GanImages(x[:, 0:3], x[:, 3:4], x[:, 4:7])
-
-
-@dataclass(frozen=True)
-class ReflectanceMaps:
-    """Physical maps, (B, C, R, R) float: albedo linear [0, 1] (3 ch); specular linear [0, 1] (1 ch);
-    normals unit tangent-space vectors (3 ch; +x along u, +y along v (up), +z out)."""
-
-    albedo: torch.Tensor
-    specular: torch.Tensor
-    normals: torch.Tensor
 
 
 def _srgb_to_linear(x: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,176 @@
+"""Rasterisation split as nvdiffrast does it: a visibility pass (which triangle covers each pixel;
+no gradients, numba) and a differentiable pass (the barycentrics of each covered pixel recomputed in
+torch from the projected vertices, so gradients reach the vertex positions).
+
+Sampling: pixel (i, j) is covered by a triangle if its centre (j + 0.5, i + 0.5) is inside (edges
+inclusive) and the triangle is the nearest there (perspective-correct depth). Triangles with any vertex
+nearer than the camera's near plane are dropped (not clipped): for a head in front of a camera this
+only ever removes geometry the camera is inside of.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+
+__all__ = ["Fragments", "rasterize", "barycentrics", "interpolate"]
+
+
+@dataclass(frozen=True)
+class Fragments:
+    """Visibility of one batch of images.
+
+    triangle: (B, H, W) int64 triangle index, -1 where nothing is drawn.
+    index: (N, 3) int64 (b, i, j) of the N covered pixels, row-major order.
+    face: (N,) int64 their triangles.
+    """
+
+    triangle: torch.Tensor
+    index: torch.Tensor
+    face: torch.Tensor
+
+    @property
+    def mask(self) -> torch.Tensor:
+        """(B, H, W) bool, covered pixels."""
+        return self.triangle >= 0
+
+
+@numba.njit(cache=True, nogil=True)
+def _raster_kernel(px, faces, height, width, near, cull, tri_out, depth):
+    """px: (V, 3) float64 pixel x, y, depth; tri_out (H, W) int64 filled with -1; depth (H, W) inf."""
+    for f in range(faces.shape[0]):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        za, zb, zc = px[a, 2], px[b, 2], px[c, 2]
+        if za < near or zb < near or zc < near:
+            continue
+        xa, ya, xb, yb, xc, yc = px[a, 0], px[a, 1], px[b, 0], px[b, 1], px[c, 0], px[c, 1]
+        area = (xb - xa) * (yc - ya) - (xc - xa) * (yb - ya)
+        if area == 0.0 or not np.isfinite(area):
+            continue
+        if cull and area > 0:  # back-facing (see rasterize)
+            continue
+        x0 = max(int(np.floor(min(xa, xb, xc) - 0.5)), 0)
+        x1 = min(int(np.ceil(max(xa, xb, xc) - 0.5)), width - 1)
+        y0 = max(int(np.floor(min(ya, yb, yc) - 0.5)), 0)
+        y1 = min(int(np.ceil(max(ya, yb, yc) - 0.5)), height - 1)
+        inv = 1.0 / area
+        for i in range(y0, y1 + 1):
+            py = i + 0.5
+            for j in range(x0, x1 + 1):
+                qx = j + 0.5
+                w0 = ((xb - qx) * (yc - py) - (xc - qx) * (yb - py)) * inv
+                w1 = ((xc - qx) * (ya - py) - (xa - qx) * (yc - py)) * inv
+                w2 = 1.0 - w0 - w1
+                if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                    continue
+                z = 1.0 / (w0 / za + w1 / zb + w2 / zc)
+                if z < depth[i, j]:
+                    depth[i, j] = z
+                    tri_out[i, j] = f
+
+
+def _visibility(px: np.ndarray, faces: np.ndarray, height: int, width: int, near: float, cull: bool,
+                return_depth: bool = False):
+    b = px.shape[0]
+    tri = np.full((b, height, width), -1, np.int64)
+    depth = np.full((b, height, width), np.inf)
+    for k in range(b):
+        _raster_kernel(px[k], faces, height, width, near, cull, tri[k], depth[k])
+    return (tri, depth) if return_depth else tri
+
+
+def _visibility_ref(px: np.ndarray, faces: np.ndarray, height: int, width: int, near: float, cull: bool) -> np.ndarray:
+    """Slow and obvious: every pixel tests every triangle."""
+    b = px.shape[0]
+    tri = np.full((b, height, width), -1, np.int64)
+    for k in range(b):
+        for i in range(height):
+            for j in range(width):
+                best = np.inf
+                q = np.array([j + 0.5, i + 0.5])
+                for f, (a, bb, c) in enumerate(faces):
+                    pa, pb, pc = px[k, a], px[k, bb], px[k, c]
+                    if min(pa[2], pb[2], pc[2]) < near:
+                        continue
+                    area = (pb[0] - pa[0]) * (pc[1] - pa[1]) - (pc[0] - pa[0]) * (pb[1] - pa[1])
+                    if area == 0 or (cull and area > 0):
+                        continue
+                    w0 = ((pb[0] - q[0]) * (pc[1] - q[1]) - (pc[0] - q[0]) * (pb[1] - q[1])) / area
+                    w1 = ((pc[0] - q[0]) * (pa[1] - q[1]) - (pa[0] - q[0]) * (pc[1] - q[1])) / area
+                    w2 = 1 - w0 - w1
+                    if min(w0, w1, w2) < 0:
+                        continue
+                    z = 1 / (w0 / pa[2] + w1 / pb[2] + w2 / pc[2])
+                    if z < best:
+                        best, tri[k, i, j] = z, f
+    return tri
+
+
+def rasterize(px: torch.Tensor, faces: torch.Tensor, height: int, width: int, near: float = 10.0,
+              cull_backfaces: bool = True) -> Fragments:
+    """Visibility pass. px: (B, V, 3) projected vertices (pixel x, pixel y, depth mm; ``camera.project``);
+    faces: (F, 3) int. Counter-clockwise triangles as seen on screen (y down) are front-facing: that
+    is what the shape model's outward-wound triangles become under ``camera.project``. No gradients."""
+    if px.ndim != 3 or px.shape[-1] != 3:
+        raise ValueError(f"rasterize: expected px of shape (B, V, 3), got {tuple(px.shape)}")
+    if faces.ndim != 2 or faces.shape[-1] != 3:
+        raise ValueError(f"rasterize: expected faces of shape (F, 3), got {tuple(faces.shape)}")
+    p = px.detach().to("cpu", torch.float64).numpy()
+    p = np.where(np.isfinite(p), p, -1.0)  # a NaN vertex fails the near test and is dropped
+    tri = torch.from_numpy(_visibility(p, faces.detach().cpu().numpy().astype(np.int64), height, width, near, cull_backfaces))
+    tri = tri.to(px.device)
+    index = (tri >= 0).nonzero()
+    return Fragments(tri, index, tri[index[:, 0], index[:, 1], index[:, 2]])
+
+
+def barycentrics(px: torch.Tensor, faces: torch.Tensor, frags: Fragments, perspective: bool = True) -> torch.Tensor:
+    """(N, 3) barycentric weights of each covered pixel's centre, differentiable w.r.t. ``px``.
+    Perspective-correct by default (weights of attributes that vary linearly on the 3D triangle)."""
+    b, i, j = frags.index.unbind(1)
+    v = _gather_corners(px, faces, frags)  # (N, 3 corners, 3)
+    q = torch.stack([j, i], 1).to(px.dtype) + 0.5
+    a, bb, c = v[:, 0], v[:, 1], v[:, 2]
+    area = (bb[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (bb[:, 1] - a[:, 1])
+    # visible triangles have |area| > 0 (the visibility pass skips zero-area ones), but a tiny sliver can
+    # be 1e-12 px^2: keep its sign, bound its inverse
+    area = torch.where(area.abs() < 1e-12, torch.full_like(area, -1e-12), area)
+    w0 = ((bb[:, 0] - q[:, 0]) * (c[:, 1] - q[:, 1]) - (c[:, 0] - q[:, 0]) * (bb[:, 1] - q[:, 1])) / area
+    w1 = ((c[:, 0] - q[:, 0]) * (a[:, 1] - q[:, 1]) - (a[:, 0] - q[:, 0]) * (c[:, 1] - q[:, 1])) / area
+    w = torch.stack([w0, w1, 1 - w0 - w1], 1)
+    if not perspective:
+        return w
+    w = w / v[:, :, 2].clamp(min=1e-6)
+    return w / w.sum(1, keepdim=True).where(w.sum(1, keepdim=True).abs() > 1e-12, torch.ones_like(w[:, :1]))
+
+
+def _gather_corners(attr: torch.Tensor, faces: torch.Tensor, frags: Fragments) -> torch.Tensor:
+    """(B, V, C) or (V, C) -> (N, 3, C) values at the corners of each covered pixel's triangle.
+    index_select on a flat table: its backward is index_add, several times faster on the CPU than
+    advanced indexing's accumulate-put."""
+    tri = faces[frags.face]  # (N, 3)
+    if attr.ndim == 2:
+        flat, idx = attr, tri.reshape(-1)
+    else:
+        flat = attr.reshape(-1, attr.shape[-1])
+        idx = (tri + frags.index[:, :1] * attr.shape[1]).reshape(-1)
+    return flat.index_select(0, idx).view(len(tri), 3, -1)
+
+
+def interpolate(attr: torch.Tensor, faces: torch.Tensor, frags: Fragments, bary: torch.Tensor) -> torch.Tensor:
+    """Per-vertex attributes (B, V, C) (or (V, C), shared by the batch) at the covered pixels: (N, C).
+    ``faces`` indexes ``attr``: pass ``uv_faces`` for UVs, ``faces`` for vertex attributes."""
+    vals = _gather_corners(attr, faces, frags)
+    return torch.einsum("nkc,nk->nc", vals, bary.to(vals.dtype))
+
+
+def scatter_image(values: torch.Tensor, frags: Fragments, background: float | torch.Tensor = 0.0) -> torch.Tensor:
+    """(N, C) per covered pixel -> (B, C, H, W) image, ``background`` elsewhere. Differentiable."""
+    b, h, w = frags.triangle.shape
+    out = torch.zeros(b, h, w, values.shape[1], dtype=values.dtype, device=values.device)
+    if isinstance(background, torch.Tensor) or background != 0:
+        out = out + background
+    out = out.index_put((frags.index[:, 0], frags.index[:, 1], frags.index[:, 2]), values)
+    return out.permute(0, 3, 1, 2)
