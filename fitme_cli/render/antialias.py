@@ -48,6 +48,12 @@ def antialias(color: torch.Tensor, frags: Fragments, px: torch.Tensor, faces: to
         area = _signed_area(px.detach(), faces)  # (B, F); front-facing < 0
         behind = (px.detach()[..., 2][:, faces] < near).any(-1)
         front = (area < 0) & ~behind
+        adj_front = front.gather(1, adjacency.clamp(min=0).reshape(1, -1).expand(front.shape[0], -1)).view(-1, *adjacency.shape)
+        edge_sil = (adjacency[None] < 0) | ~adj_front  # (B, F, 3)
+        sil_face = front & edge_sil.any(-1)  # triangles with at least one silhouette edge
+        sil_pix = torch.zeros_like(tri, dtype=torch.bool)
+        cov = tri >= 0
+        sil_pix[cov] = sil_face[cov.nonzero()[:, 0], tri[cov]]
     out = color
     deltas = []
     for axis in (2, 1):  # horizontal neighbours, then vertical
@@ -55,7 +61,10 @@ def antialias(color: torch.Tensor, frags: Fragments, px: torch.Tensor, faces: to
         tb = tri.narrow(axis, 1, tri.shape[axis] - 1)
         da = depth.narrow(axis, 0, tri.shape[axis] - 1)
         db = depth.narrow(axis, 1, tri.shape[axis] - 1)
-        cand = (ta != tb).nonzero()  # (K, 3) b, i, j of the first pixel of each pair
+        sa = sil_pix.narrow(axis, 0, tri.shape[axis] - 1)
+        sb = sil_pix.narrow(axis, 1, tri.shape[axis] - 1)
+        # only pairs next to a silhouette triangle can straddle a silhouette edge
+        cand = ((ta != tb) & (sa | sb)).nonzero()  # (K, 3) b, i, j of the first pixel of each pair
         if len(cand) == 0:
             continue
         b, i, j = cand.unbind(1)
@@ -76,9 +85,7 @@ def antialias(color: torch.Tensor, frags: Fragments, px: torch.Tensor, faces: to
         best_t = torch.full((len(b),), 2.0, dtype=px.dtype)
         for e in range(3):
             p0, p1 = v[:, e], v[:, (e + 1) % 3]
-            nb = adjacency[t_front, e]
-            with torch.no_grad():
-                silhouette = (nb < 0) | ~front[b, nb.clamp(min=0)]
+            silhouette = edge_sil[b, t_front, e]
             ex, ey = p1[:, 0] - p0[:, 0], p1[:, 1] - p0[:, 1]
             # edge function, positive on the triangle's side for front-facing (area < 0) triangles
             gf = -(ex * (qf[:, 1] - p0[:, 1]) - ey * (qf[:, 0] - p0[:, 0]))

@@ -150,20 +150,38 @@ def _gather_corners(attr: torch.Tensor, faces: torch.Tensor, frags: Fragments) -
     """(B, V, C) or (V, C) -> (N, 3, C) values at the corners of each covered pixel's triangle.
     index_select on a flat table: its backward is index_add, several times faster on the CPU than
     advanced indexing's accumulate-put."""
+    flat, idx = _flat_rows(attr, faces, frags)
+    if flat.device.type == "cpu":
+        from ._kernels import gather_rows
+
+        return gather_rows(flat, idx)
+    return flat.index_select(0, idx.reshape(-1)).view(len(idx), 3, -1)
+
+
+def _flat_rows(attr: torch.Tensor, faces: torch.Tensor, frags: Fragments) -> tuple[torch.Tensor, torch.Tensor]:
+    """The attribute table as (M, C) and each covered pixel's 3 corner rows in it (N, 3)."""
     tri = faces[frags.face]  # (N, 3)
     if attr.ndim == 2:
-        flat, idx = attr, tri.reshape(-1)
-    else:
-        flat = attr.reshape(-1, attr.shape[-1])
-        idx = (tri + frags.index[:, :1] * attr.shape[1]).reshape(-1)
-    return flat.index_select(0, idx).view(len(tri), 3, -1)
+        return attr, tri
+    return attr.reshape(-1, attr.shape[-1]), tri + frags.index[:, :1] * attr.shape[1]
 
 
 def interpolate(attr: torch.Tensor, faces: torch.Tensor, frags: Fragments, bary: torch.Tensor) -> torch.Tensor:
     """Per-vertex attributes (B, V, C) (or (V, C), shared by the batch) at the covered pixels: (N, C).
-    ``faces`` indexes ``attr``: pass ``uv_faces`` for UVs, ``faces`` for vertex attributes."""
-    vals = _gather_corners(attr, faces, frags)
-    return torch.einsum("nkc,nk->nc", vals, bary.to(vals.dtype))
+    ``faces`` indexes ``attr``: pass ``uv_faces`` for UVs, ``faces`` for vertex attributes.
+    CPU: a numba loop with its own backward; elsewhere (and as the reference) ``_interpolate_torch``."""
+    if attr.device.type != "cpu":
+        return _interpolate_torch(attr, faces, frags, bary)
+    from ._kernels import interpolate_rows
+
+    flat, idx = _flat_rows(attr, faces, frags)
+    return interpolate_rows(flat, idx, bary.to(flat.dtype))
+
+
+def _interpolate_torch(attr, faces, frags, bary):
+    flat, idx = _flat_rows(attr, faces, frags)
+    vals = flat.index_select(0, idx.reshape(-1)).view(len(idx), 3, -1)
+    return (vals * bary[..., None].to(vals.dtype)).sum(1)
 
 
 def scatter_image(values: torch.Tensor, frags: Fragments, background: float | torch.Tensor = 0.0) -> torch.Tensor:

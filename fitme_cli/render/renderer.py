@@ -33,18 +33,19 @@ class RenderSettings:
     antialias: bool = True
     cull_backfaces: bool = True
     shadow_resolution: int = 256
+    components: bool = False  # also return the diffuse and specular images (diagnostics; costs ~15 %)
 
 
 @dataclass(frozen=True)
 class RenderOutput:
     """image: (B, 3, H, W) sRGB [0, 1]; linear: (B, 3, H, W) linear radiance; mask: (B, 1, H, W) 1 where the
-    mesh covers the pixel centre; diffuse, specular: (B, 3, H, W) linear components (specular None when
-    off); depth: (B, H, W) mm, inf on the background; fragments: the visibility pass."""
+    mesh covers the pixel centre; diffuse, specular: (B, 3, H, W) linear components when
+    ``RenderSettings.components`` (specular also None when off); depth: (B, H, W) mm, inf on the background; fragments: the visibility pass."""
 
     image: torch.Tensor
     linear: torch.Tensor
     mask: torch.Tensor
-    diffuse: torch.Tensor
+    diffuse: torch.Tensor | None
     specular: torch.Tensor | None
     depth: torch.Tensor
     fragments: Fragments
@@ -66,6 +67,11 @@ class Renderer(nn.Module):
         self.register_buffer("uv_faces", uv_faces.long())
         self.register_buffer("adjacency", face_adjacency(faces))
         self._smooth = mesh_smoothing_operator(faces, n_vertices)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            self._smooth_t = self._smooth.to_sparse_coo().t().coalesce().to_sparse_csr()
         self._smooth_cache: dict = {}
 
     @staticmethod
@@ -75,7 +81,7 @@ class Renderer(nn.Module):
     def _smoothing(self, dtype, device):
         key = (dtype, device)
         if key not in self._smooth_cache:
-            self._smooth_cache[key] = self._smooth.to(device=device, dtype=dtype)
+            self._smooth_cache[key] = (self._smooth.to(device=device, dtype=dtype), self._smooth_t.to(device=device, dtype=dtype))
         return self._smooth_cache[key]
 
     def forward(self, vertices: torch.Tensor, normals: torch.Tensor, tangents: torch.Tensor, maps: ReflectanceMaps,
@@ -123,17 +129,23 @@ class Renderer(nn.Module):
         if effects.specular:
             p, nrm, tan = attrs[:, 4:7], attrs[:, 7:10], attrs[:, 10:14]
             n_detail = tangent_to_world(tex[:, 4:7], tan, nrm)
-            bi = frags.index[:, 0]
             eye = -torch.einsum("bji,bj->bi", camera.rotation.to(dtype), camera.translation.to(dtype))  # centre = -R^T t
-            per_pixel = Lights(used.ambient[bi], used.direction[bi], used.colour[bi],
-                               None if used.position is None else used.position[bi], None)
-            shin = tex[:, 7:8][:, None] if shininess_map is not None else s.shininess
+            shin = tex[:, 7:8] if shininess_map is not None else s.shininess
             pvis = None
-            if vis is not None:  # per-vertex light visibility, interpolated
-                pv = interpolate(vis.permute(0, 2, 1), self.faces, frags, bary)  # (N, L)
-                pvis = pv[:, :, None]
-            spec = tex[:, 3:4] * specular_reflectance(n_detail[:, None], nrm[:, None], p[:, None], eye[bi], per_pixel,
-                                                      shin, pvis)[:, 0]
+            if vis is not None:  # per-vertex light visibility, interpolated: (N, L)
+                pvis = interpolate(vis.permute(0, 2, 1), self.faces, frags, bary)
+            if b == 1:  # one image: the pixels are one batch of points, no per-pixel copies of the lights
+                spec = specular_reflectance(n_detail[None], nrm[None], p[None], eye, used,
+                                            shin if isinstance(shin, float) else shin[None],
+                                            None if pvis is None else pvis.T[None])[0]
+            else:  # each pixel its own batch element, with its image's lights
+                bi = frags.index[:, 0]
+                per_pixel = Lights(used.ambient[bi], used.direction[bi], used.colour[bi],
+                                   None if used.position is None else used.position[bi], None)
+                spec = specular_reflectance(n_detail[:, None], nrm[:, None], p[:, None], eye[bi], per_pixel,
+                                            shin if isinstance(shin, float) else shin[:, None],
+                                            None if pvis is None else pvis[:, :, None])[:, 0]
+            spec = tex[:, 3:4] * spec
             colour = colour + spec
 
         bg = background.to(dtype).permute(0, 2, 3, 1) if background is not None else None
@@ -143,8 +155,9 @@ class Renderer(nn.Module):
         if s.antialias:
             linear = antialias(linear, frags, px, self.faces, self.adjacency, depth.detach(), camera.near)
         mask = frags.mask[:, None].to(dtype)
-        return RenderOutput(linear_to_srgb(linear), linear, mask, self._to_image(diffuse, frags, None),
-                            None if spec is None else self._to_image(spec, frags, None), depth, frags)
+        return RenderOutput(linear_to_srgb(linear), linear, mask,
+                            self._to_image(diffuse, frags, None) if s.components else None,
+                            self._to_image(spec, frags, None) if s.components and spec is not None else None, depth, frags)
 
     @staticmethod
     def _to_image(values: torch.Tensor, frags: Fragments, background: torch.Tensor | None) -> torch.Tensor:
@@ -159,6 +172,11 @@ class Renderer(nn.Module):
         """(B or 1, C, R, R) maps at per-pixel uv (N, 2) of batch elements ``batch_index`` -> (N, C)."""
         import torch.nn.functional as F
 
+        if texture.device.type == "cpu":
+            from ._kernels import bilinear_lookup
+
+            bi = batch_index if texture.shape[0] > 1 else torch.zeros_like(batch_index)
+            return bilinear_lookup(texture, bi, uv.to(texture.dtype))
         grid = torch.stack([uv[:, 0] * 2 - 1, 1 - uv[:, 1] * 2], -1)
         if texture.shape[0] == 1 or b == 1:
             return F.grid_sample(texture[:1], grid[None, None], mode="bilinear", padding_mode="border",

@@ -104,22 +104,37 @@ def mesh_smoothing_operator(faces: torch.Tensor, n_vertices: int) -> torch.Tenso
     idx = a.indices()
     deg = torch.bincount(idx[0], minlength=n_vertices).float()  # duplicates were summed: count entries
     coo = torch.sparse_coo_tensor(idx, 1.0 / deg[idx[0]], a.shape, check_invariants=False).coalesce()
-    return coo.to_sparse_csr()  # CSR: ~10x faster than COO in sparse.mm on the CPU
+    import warnings
+
+    with warnings.catch_warnings():  # "CSR support is in beta": we use only CSR @ dense
+        warnings.simplefilter("ignore", UserWarning)
+        return coo.to_sparse_csr()  # CSR: ~10x faster than COO in sparse.mm on the CPU
 
 
-def subsurface_scatter(irradiance: torch.Tensor, operator: torch.Tensor, steps: tuple[int, int, int],
-                       weights: tuple[float, float, float]) -> torch.Tensor:
+def subsurface_scatter(irradiance: torch.Tensor, operator: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
+                       steps: tuple[int, int, int], weights: tuple[float, float, float]) -> torch.Tensor:
     """Subsurface scattering as a per-channel blur of the diffuse irradiance over the skin surface
     (texture-space diffusion, done on the mesh graph: same idea, no texture-sized pass). Channel c
     becomes (1 - w_c) E_c + w_c S^{k_c} E_c, with S the 1-ring average; red spreads widest.
-    irradiance: (B, V, 3) -> (B, V, 3)."""
+    irradiance: (B, V, 3) -> (B, V, 3). ``operator``: S, or (S, S^T) for a faster backward."""
     b, v, _ = irradiance.shape
-    op = operator.to(irradiance.dtype)
+    if isinstance(operator, tuple):
+        from ._kernels import sparse_apply
+
+        op, op_t = operator
+
+        def apply(x):
+            return sparse_apply(op, op_t, x)
+    else:
+        op = operator.to(irradiance.dtype)
+
+        def apply(x):
+            return op @ x
     e = irradiance.permute(1, 0, 2).reshape(v, b * 3)  # (V, B*3): all channels share the steps
     level = {0: e}
     cur = e
     for k in range(1, max(steps) + 1):
-        cur = op @ cur
+        cur = apply(cur)
         level[k] = cur
     w = torch.tensor(weights, dtype=e.dtype, device=e.device)
     blurred = torch.stack([level[steps[c]].view(v, b, 3)[..., c] for c in range(3)], -1)  # (V, B, 3)
