@@ -27,14 +27,14 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "train_step", "save_check
 
 @dataclass(frozen=True)
 class TrainSettings:
-    batch: int = 8
+    batch: int = 4  # more updates per CPU-second than 8; StyleGAN2 trains fine at small batches
     kimg: float = 40.0  # training length in thousands of real images shown to D
     g_lr: float = 0.0025
     d_lr: float = 0.0025
     beta2: float = 0.99  # Adam betas are (0, beta2), as StyleGAN2
-    r1_gamma: float = 1.0  # StyleGAN2-ADA's heuristic 0.0002 * R^2 / batch gives 1.6 at 256^2, batch 8
+    r1_gamma: float = 3.0  # StyleGAN2-ADA's heuristic 0.0002 * R^2 / batch: 3.3 at 256^2, batch 4
     r1_interval: int = 16  # lazy regularisation
-    ema_kimg: float = 2.5  # EMA half-life: StyleGAN2-ADA's 10 kimg per batch 32, scaled to our batch
+    ema_kimg: float | None = None  # EMA half-life; None: StyleGAN2-ADA's 10 kimg per batch 32, scaled to ours
     ema_rampup: float = 0.05
     style_mixing: float = 0.9
     ada: bool = False
@@ -43,6 +43,7 @@ class TrainSettings:
     ada_kimg: float = 100.0  # p can move 0 -> 1 in this many kimg
     snapshot_kimg: float = 1.0  # sample grid, metrics and checkpoint every this many kimg
     seed: int = 0
+    channels_last: bool = True  # NHWC convolutions: measured 23 % faster per step on this CPU
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -84,6 +85,9 @@ def new_state(gan: GanSettings, train: TrainSettings, data_mean: torch.Tensor | 
     if data_mean is not None:
         with torch.no_grad():
             G.synthesis.mean_image.copy_(data_mean)
+    if train.channels_last:
+        G.to(memory_format=torch.channels_last)
+        D.to(memory_format=torch.channels_last)
     G_ema = copy_generator(G)
     c = train.r1_interval / (train.r1_interval + 1)  # lazy regularisation's lr / momentum correction
     opt_G = torch.optim.Adam(G.parameters(), lr=train.g_lr, betas=(0.0, train.beta2), eps=1e-8)
@@ -110,6 +114,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     """One G step and one D step on ``reals`` (batch, 7, R, R) network space. Returns the losses."""
     t, G, D = state.train, state.G, state.D
     b = reals.shape[0]
+    if t.channels_last:
+        reals = reals.contiguous(memory_format=torch.channels_last)
     G.train()
     D.train()
     # generator: softplus(-D(G(z)))
@@ -147,7 +153,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
             state.ada_p = float(min(max(state.ada_p + adjust, 0.0), 1.0))
             state.ada_acc, state.ada_n = 0.0, 0
     # EMA of the generator weights; buffers (w_avg, const noise) copied
-    ema_nimg = t.ema_kimg * 1000
+    ema_nimg = (t.ema_kimg if t.ema_kimg is not None else t.batch * 10 / 32) * 1000
     if t.ema_rampup:
         ema_nimg = min(ema_nimg, (state.nimg + b) * t.ema_rampup)
     beta = 0.5 ** (b / max(ema_nimg, 1e-8))
@@ -170,7 +176,7 @@ def _opt_tensors(prefix: str, opt: torch.optim.Optimizer) -> dict[str, torch.Ten
     out = {}
     for i, st in opt.state_dict()["state"].items():
         for k, v in st.items():
-            out[f"{prefix}.{i}.{k}"] = v if torch.is_tensor(v) else torch.tensor(v)
+            out[f"{prefix}.{i}.{k}"] = v.contiguous() if torch.is_tensor(v) else torch.tensor(v)
     return out
 
 
