@@ -90,7 +90,10 @@ def antialias(color: torch.Tensor, frags: Fragments, px: torch.Tensor, faces: to
             # edge function, positive on the triangle's side for front-facing (area < 0) triangles
             gf = -(ex * (qf[:, 1] - p0[:, 1]) - ey * (qf[:, 0] - p0[:, 0]))
             gk = -(ex * (qk[:, 1] - p0[:, 1]) - ey * (qk[:, 0] - p0[:, 0]))
-            crosses = silhouette & (gk < 0) & (gf >= 0)
+            # each edge belongs to the pairs along its more-normal axis only (horizontal pairs for
+            # steep edges, vertical pairs for flat ones), or a diagonal edge would be blended twice
+            major = ey.abs() >= ex.abs() if axis == 2 else ex.abs() > ey.abs()
+            crosses = silhouette & major & (gk < 0) & (gf >= 0)
             denom = torch.where(crosses, gf - gk, torch.ones_like(gf))
             t = torch.where(crosses, gf / denom, torch.full_like(gf, 2.0))
             best_t = torch.minimum(best_t, t)

@@ -61,9 +61,12 @@ def _raster_kernel(px, faces, height, width, near, cull, tri_out, depth):
             py = i + 0.5
             for j in range(x0, x1 + 1):
                 qx = j + 0.5
-                w0 = ((xb - qx) * (yc - py) - (xc - qx) * (yb - py)) * inv
-                w1 = ((xc - qx) * (ya - py) - (xa - qx) * (yc - py)) * inv
-                w2 = 1.0 - w0 - w1
+                # each edge function cross(p0 - q, p1 - q) computed on its own: the neighbour across a
+                # shared edge gets the exact negation, so a centre on the edge is never missed by both
+                e0 = (xb - qx) * (yc - py) - (xc - qx) * (yb - py)
+                e1 = (xc - qx) * (ya - py) - (xa - qx) * (yc - py)
+                e2 = (xa - qx) * (yb - py) - (xb - qx) * (ya - py)
+                w0, w1, w2 = e0 * inv, e1 * inv, e2 * inv
                 if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
                     continue
                 z = 1.0 / (w0 / za + w1 / zb + w2 / zc)
@@ -100,7 +103,7 @@ def _visibility_ref(px: np.ndarray, faces: np.ndarray, height: int, width: int, 
                         continue
                     w0 = ((pb[0] - q[0]) * (pc[1] - q[1]) - (pc[0] - q[0]) * (pb[1] - q[1])) / area
                     w1 = ((pc[0] - q[0]) * (pa[1] - q[1]) - (pa[0] - q[0]) * (pc[1] - q[1])) / area
-                    w2 = 1 - w0 - w1
+                    w2 = ((pa[0] - q[0]) * (pb[1] - q[1]) - (pb[0] - q[0]) * (pa[1] - q[1])) / area
                     if min(w0, w1, w2) < 0:
                         continue
                     z = 1 / (w0 / pa[2] + w1 / pb[2] + w2 / pc[2])
@@ -119,7 +122,7 @@ def rasterize(px: torch.Tensor, faces: torch.Tensor, height: int, width: int, ne
     if faces.ndim != 2 or faces.shape[-1] != 3:
         raise ValueError(f"rasterize: expected faces of shape (F, 3), got {tuple(faces.shape)}")
     p = px.detach().to("cpu", torch.float64).numpy()
-    p = np.where(np.isfinite(p), p, -1.0)  # a NaN vertex fails the near test and is dropped
+    p = np.where(np.isfinite(p).all(-1, keepdims=True), p, -1.0)  # any non-finite coordinate: depth -1, dropped
     tri = torch.from_numpy(_visibility(p, faces.detach().cpu().numpy().astype(np.int64), height, width, near, cull_backfaces))
     tri = tri.to(px.device)
     index = (tri >= 0).nonzero()
