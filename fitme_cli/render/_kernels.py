@@ -113,11 +113,11 @@ def _bilinear_bwd(tex, bidx, uv, g, g_tex, g_uv, need_tex, need_uv):
         for j in range(c):
             gij = g[i, j]
             t00, t01, t10, t11 = tex[b, j, y0, x0], tex[b, j, y0, x1], tex[b, j, y1, x0], tex[b, j, y1, x1]
-            if need_tex:
-                g_tex[b, j, y0, x0] += (1 - fx) * (1 - fy) * gij
-                g_tex[b, j, y0, x1] += fx * (1 - fy) * gij
-                g_tex[b, j, y1, x0] += (1 - fx) * fy * gij
-                g_tex[b, j, y1, x1] += fx * fy * gij
+            if need_tex:  # g_tex is (B, H, W, C): a pixel's writes stay in 4 cache lines
+                g_tex[b, y0, x0, j] += (1 - fx) * (1 - fy) * gij
+                g_tex[b, y0, x1, j] += fx * (1 - fy) * gij
+                g_tex[b, y1, x0, j] += (1 - fx) * fy * gij
+                g_tex[b, y1, x1, j] += fx * fy * gij
             if need_uv:
                 gu += gij * ((1 - fy) * (t01 - t00) + fy * (t11 - t10))
                 gv += gij * ((1 - fx) * (t10 - t00) + fx * (t11 - t01))
@@ -140,11 +140,12 @@ class _BilinearLookup(torch.autograd.Function):
         tex, bidx, uv = ctx.saved_tensors
         need_tex, need_uv = ctx.needs_input_grad[0], ctx.needs_input_grad[2]
         t = tex.detach().numpy()
-        g_tex = np.zeros_like(t) if need_tex else np.zeros((1, 1, 1, 1), t.dtype)
+        b, c, h, w = t.shape
+        g_tex = np.zeros((b, h, w, c), t.dtype) if need_tex else np.zeros((1, 1, 1, 1), t.dtype)
         g_uv = np.zeros((uv.shape[0], 2), t.dtype)
         _bilinear_bwd(t, bidx.numpy(), uv.detach().numpy().astype(t.dtype, copy=False), np.ascontiguousarray(g.numpy()),
                       g_tex, g_uv, need_tex, need_uv)
-        return (torch.from_numpy(g_tex) if need_tex else None, None,
+        return (torch.from_numpy(g_tex).permute(0, 3, 1, 2) if need_tex else None, None,
                 torch.from_numpy(g_uv).to(uv.dtype) if need_uv else None)
 
 
