@@ -13,11 +13,12 @@ __all__ = ["initial_camera"]
 
 
 def initial_camera(landmarks_px: np.ndarray, model_points: np.ndarray, width: int, height: int, focal_px: float,
-                   weights: np.ndarray | None = None) -> Camera:
+                   weights: np.ndarray | None = None, principal: np.ndarray | None = None) -> Camera:
     """landmarks_px: (N, 2) detected points in pixels; model_points: (N, 3) the same points on the shape
     model (mm, world frame); weights: (N,) > 0 selects the points used (None: all). Returns a batch-1
     Camera (principal point at the image centre) whose projection of ``model_points`` best matches
-    the landmarks (SQPnP, then Levenberg-Marquardt refinement)."""
+    the landmarks (SQPnP, then Levenberg-Marquardt refinement). ``principal``: (2,) pixels, default the
+    image centre (a crop's principal point is the full photo's centre, mapped into the crop)."""
     pts2 = np.asarray(landmarks_px, np.float64)
     pts3 = np.asarray(model_points, np.float64)
     if pts2.ndim != 2 or pts2.shape[1] != 2 or pts3.shape != (len(pts2), 3):
@@ -27,7 +28,8 @@ def initial_camera(landmarks_px: np.ndarray, model_points: np.ndarray, width: in
         pts2, pts3 = pts2[keep], pts3[keep]
     if len(pts2) < 6:
         raise ValueError(f"need at least 6 landmarks for the pose, got {len(pts2)}")
-    k = np.array([[focal_px, 0, width / 2], [0, focal_px, height / 2], [0, 0, 1]], np.float64)
+    cx, cy = (width / 2, height / 2) if principal is None else (float(principal[0]), float(principal[1]))
+    k = np.array([[focal_px, 0, cx], [0, focal_px, cy], [0, 0, 1]], np.float64)
     ok, rvec, tvec = cv2.solvePnP(pts3, pts2, k, None, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         raise ValueError("PnP failed for these landmarks")
@@ -36,5 +38,5 @@ def initial_camera(landmarks_px: np.ndarray, model_points: np.ndarray, width: in
     if tvec[2, 0] <= 0:  # a mirror solution behind the camera: never a real face
         raise ValueError("PnP put the face behind the camera")
     t = torch.tensor
-    return Camera(t([[focal_px, focal_px]]), t([[width / 2, height / 2]]), t(rot[None], dtype=torch.float32),
+    return Camera(t([[focal_px, focal_px]]), t([[cx, cy]]), t(rot[None], dtype=torch.float32),
                   t(tvec.reshape(1, 3), dtype=torch.float32), width, height)

@@ -1,0 +1,190 @@
+"""GAN inversion (FitMe Sec. 3.4.1): W, shape, expressions, cameras and lights, fitted together through
+the renderer to one or several photos of one person. Photos share W and p_s; each has its own camera,
+lights and expression.
+
+Status: the optimisation loop with the landmark, photometric, identity, perceptual and prior losses,
+coarse-to-fine over the synthesis resolution. Not yet: the effect selector's coarse-fit residuals,
+tuning, the avatar directory and the CLI (issue 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from ..reflectance.gan.networks import Generator, decode_maps
+from ..reflectance.maps import ReflectanceMaps
+from ..render import Camera, Effects, Lights, Renderer
+from ..render.camera import focal_px_from_35mm, project
+from .losses import identity_loss, landmark_loss, perceptual_loss, photometric_loss, w_prior
+from .pose import initial_camera
+
+__all__ = ["InversionSettings", "PhotoInput", "InversionResult", "prepare_photo", "invert"]
+
+
+@dataclass(frozen=True)
+class InversionSettings:
+    iterations: int = 200  # the paper: 200 (main text) to 250 (supplementary)
+    lr: float = 1e-2  # the paper's l_inv
+    render_size: int = 256  # the paper renders 512^2; 256^2 is our CPU default
+    crop_scale: float = 1.6  # crop side / landmark bounding-box side
+    # the paper's lambda_1..7: landmarks, photometric, identity, perceptual, W, shape, expression; lambda_4
+    # is 25 / 25: our perceptual distance (dlib ResNet activations, unit-normalised per position, squared
+    # differences summed over channels) is ~25x an LPIPS value for the same pair of faces
+    lambdas: tuple[float, float, float, float, float, float, float] = (100.0, 0.5, 1.0, 1.0, 5e-2, 5e-4, 5e-4)
+    jaw_weight: float = 0.3  # landmarks on the face outline slide along it: trust them less
+    coarse_fraction: float = 0.4  # share of iterations with the synthesis stopped at coarse_resolution
+    coarse_resolution: int = 64
+    effects: Effects = field(default_factory=Effects)
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class PhotoInput:
+    """One photo prepared for fitting: a square crop around the face at the render size.
+
+    crop: (S, S, 3) uint8 sRGB; landmarks: (468, 2) and ibug68: (68, 2) crop pixels; skin: (S, S) float32
+    {0, 1}; focal_px: focal length in crop pixels; principal: (2,) the photo's centre in crop pixels;
+    to_photo: (2, 3) affine crop px -> photo px."""
+
+    crop: np.ndarray
+    landmarks: np.ndarray
+    ibug68: np.ndarray
+    skin: np.ndarray
+    focal_px: float
+    principal: np.ndarray
+    to_photo: np.ndarray
+
+
+@dataclass(frozen=True)
+class InversionResult:
+    ws: torch.Tensor  # (1, num_ws, w_dim)
+    p_s: torch.Tensor  # (1, K)
+    p_e: torch.Tensor  # (P, E)
+    cameras: Camera  # batch P, crop pixels
+    lights: Lights  # batch P
+    maps: ReflectanceMaps  # (1, ., R, R) physical maps at the generator's resolution
+    history: list[dict[str, float]]  # per iteration: total and each weighted loss (mean over photos)
+
+
+def prepare_photo(rgb: np.ndarray, landmarks: np.ndarray, ibug68: np.ndarray, focal_35mm: float | None,
+                  size: int, crop_scale: float, skin_mask_fn) -> PhotoInput:
+    """Crop the face to ``size``^2 and carry the landmarks, the skin mask and the intrinsics along."""
+    h, w = rgb.shape[:2]
+    lo, hi = landmarks.min(0), landmarks.max(0)
+    centre = (lo + hi) / 2
+    side = crop_scale * float(max(hi - lo))
+    s = size / side
+    a = np.array([[s, 0, size / 2 - s * centre[0]], [0, s, size / 2 - s * centre[1]]])  # photo -> crop
+    crop = cv2.warpAffine(rgb, a, (size, size), flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+    lm = landmarks @ a[:, :2].T + a[:, 2]
+    i68 = ibug68 @ a[:, :2].T + a[:, 2]
+    inv = np.array([[1 / s, 0, centre[0] - size / 2 / s], [0, 1 / s, centre[1] - size / 2 / s]])
+    return PhotoInput(crop, lm.astype(np.float32), i68.astype(np.float32), skin_mask_fn(crop, lm),
+                      focal_px_from_35mm(focal_35mm, w, h) * s, np.array([w / 2, h / 2]) @ a[:, :2].T + a[:, 2], inv)
+
+
+def _rodrigues(aa: torch.Tensor) -> torch.Tensor:
+    """(P, 3) axis-angle -> (P, 3, 3), smooth at 0."""
+    theta2 = aa.square().sum(-1, keepdim=True)
+    theta = torch.sqrt(theta2 + 1e-12)
+    k = aa / theta
+    kx, ky, kz = k.unbind(-1)
+    z = torch.zeros_like(kx)
+    kmat = torch.stack([z, -kz, ky, kz, z, -kx, -ky, kx, z], -1).view(-1, 3, 3)
+    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(kmat)
+    return eye + s * kmat + (1 - c) * kmat @ kmat
+
+
+def _srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, landmark_vertices: torch.Tensor,
+           jaw: np.ndarray, s: InversionSettings = InversionSettings(), progress=None) -> InversionResult:
+    """Fit the photos of one person. ``descriptor``: the dlib ResNet torch twin (identity and perceptual
+    losses); ``landmark_vertices``: (468,) mesh vertex of each FaceMesh landmark; ``jaw``: landmark
+    indices on the face outline. ``progress(i, total, losses)`` is called every iteration."""
+    from ..perception.face_chip import extract_chip_torch, face_chip_affine
+
+    torch.manual_seed(s.seed)
+    n = len(photos)
+    size = s.render_size
+    dtype = torch.float32
+    renderer = Renderer.for_shape_model(shape_model)
+    photo = torch.stack([torch.from_numpy(p.crop).permute(2, 0, 1).to(dtype) / 255 for p in photos])  # (P, 3, S, S) sRGB
+    photo_lin = _srgb_to_linear(photo)
+    skin = torch.stack([torch.from_numpy(p.skin) for p in photos])[:, None]
+    target_lm = torch.stack([torch.from_numpy(p.landmarks) for p in photos])
+    face_size = torch.tensor([float(np.ptp(p.landmarks, 0).max()) for p in photos])
+    lm_w = torch.ones(468)
+    lm_w[torch.as_tensor(jaw)] = s.jaw_weight
+    chip_affine = torch.stack([torch.from_numpy(face_chip_affine(p.ibug68.astype(np.float64))).to(dtype) for p in photos])
+    with torch.no_grad():
+        photo_chip = extract_chip_torch(photo, chip_affine)
+        photo_feats = descriptor.features(photo_chip)
+
+    # cameras from PnP on the mean face
+    mean_lm = shape_model.mean[landmark_vertices].detach().cpu().numpy()
+    cams0 = [initial_camera(p.landmarks, mean_lm, size, size, p.focal_px, principal=p.principal) for p in photos]
+    rot0 = torch.cat([c.rotation for c in cams0])
+    focal = torch.cat([c.focal for c in cams0])
+    principal = torch.cat([c.principal for c in cams0])
+
+    ws = G.w_avg.detach().clone().view(1, 1, -1).repeat(1, G.settings.num_ws, 1).requires_grad_(True)
+    p_s = torch.zeros(1, shape_model.n_identity, requires_grad=True)
+    p_e = torch.zeros(n, shape_model.n_expressions, requires_grad=True)
+    aa = torch.zeros(n, 3, requires_grad=True)
+    trans = torch.cat([c.translation for c in cams0]).clone().requires_grad_(True)
+    eye_dir = torch.einsum("pji,pj->pi", rot0, -trans.detach())  # camera centre in world
+    light_dir = torch.nn.functional.normalize(eye_dir, dim=-1).clone().requires_grad_(True)
+    ambient = torch.full((n, 3), 0.5, requires_grad=True)
+    colour = torch.full((n, 3), 0.5, requires_grad=True)
+    params = [ws, p_s, p_e, aa, light_dir, ambient, colour]
+    # translation is in mm: the paper's lr (for unit-scale parameters) would move it 0.01 mm a step
+    opt = torch.optim.Adam([{"params": params}, {"params": [trans], "lr": s.lr * 100}], lr=s.lr)
+    lam = s.lambdas
+    history: list[dict[str, float]] = []
+    n_coarse = int(s.coarse_fraction * s.iterations)
+    r_full = G.settings.resolution
+    for it in range(s.iterations):
+        res = s.coarse_resolution if it < n_coarse and s.coarse_resolution < r_full else None
+        images = G.synthesis(ws, noise_mode="const", max_resolution=res)
+        maps = decode_maps(images, G.settings)
+        shp = shape_model(p_s.expand(n, -1), p_e)
+        cam = Camera(focal, principal, _rodrigues(aa) @ rot0, trans, size, size)
+        lights = Lights(ambient.clamp(min=0), light_dir[:, None], colour.clamp(min=0)[:, None])
+        out = renderer(shp.vertices, shp.normals, shp.tangents, maps, cam, lights, s.effects, background=photo_lin)
+        lm = project(shp.vertices[:, landmark_vertices], cam)[..., :2]
+        l_lan = landmark_loss(lm, target_lm, lm_w, face_size)
+        l_ph = photometric_loss(out.image, photo, skin * out.mask)
+        feats = descriptor.features(extract_chip_torch(out.image, chip_affine))
+        l_id = identity_loss(feats.descriptor, photo_feats.descriptor)
+        l_per = perceptual_loss(feats.activations, photo_feats.activations)
+        l_w = w_prior(ws, G.w_avg).expand(n)
+        l_s = shape_model.identity_prior(p_s).expand(n)
+        l_e = shape_model.expression_prior(p_e)
+        terms = {"landmarks": lam[0] * l_lan, "photometric": lam[1] * l_ph, "identity": lam[2] * l_id,
+                 "perceptual": lam[3] * l_per, "w": lam[4] * l_w, "shape": lam[5] * l_s, "expression": lam[6] * l_e}
+        total = sum(t.mean() for t in terms.values())
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+        with torch.no_grad():
+            light_dir.copy_(torch.nn.functional.normalize(light_dir, dim=-1))
+        rec = {"total": float(total)} | {k: float(v.mean()) for k, v in terms.items()}
+        history.append(rec)
+        if progress is not None:
+            progress(it, s.iterations, rec)
+    with torch.no_grad():
+        maps = decode_maps(G.synthesis(ws, noise_mode="const"), G.settings)
+        cam = Camera(focal, principal, _rodrigues(aa) @ rot0, trans, size, size)
+        lights = Lights(ambient.clamp(min=0), light_dir[:, None], colour.clamp(min=0)[:, None])
+    cam = Camera(cam.focal.detach(), cam.principal.detach(), cam.rotation.detach(), cam.translation.detach(), size, size)
+    lights = Lights(lights.ambient.detach(), lights.direction.detach(), lights.colour.detach())
+    return InversionResult(ws.detach(), p_s.detach(), p_e.detach(), cam, lights, maps, history)
