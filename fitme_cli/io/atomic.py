@@ -11,13 +11,20 @@ import numpy as np
 
 from ..errors import OutputNotWritable
 
-__all__ = ["atomic_write_bytes", "atomic_write_image"]
+__all__ = ["publish_file", "atomic_write_bytes", "atomic_write_image"]
 
 
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def publish_file(tmp: Path, path: Path) -> None:
+    """Rename a finished temporary file over ``path`` with the permissions a new file would get (some
+    writers, e.g. safetensors, create theirs 0600)."""
+    os.chmod(tmp, 0o666 & ~_umask())
+    os.replace(tmp, path)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

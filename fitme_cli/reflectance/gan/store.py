@@ -22,13 +22,15 @@ def save_generator(G: Generator, models_dir: Path, card: dict) -> Path:
 
     from safetensors.torch import save_file
 
+    from ...io.atomic import publish_file
+
     models_dir = Path(models_dir)
     models_dir.mkdir(parents=True, exist_ok=True)
     path = models_dir / f"{MODEL_NAME}.safetensors"
     tmp = path.with_name(path.name + ".tmp")
     sd = {k: v.detach().float().contiguous() for k, v in G.state_dict().items()}
     save_file(sd, str(tmp), metadata={"gan": json.dumps(asdict(G.settings))})
-    tmp.replace(path)
+    publish_file(tmp, path)
     card_path = models_dir / f"{MODEL_NAME}.json"
     tmp = card_path.with_name(card_path.name + ".tmp")
     tmp.write_text(json.dumps({"name": MODEL_NAME, "settings": asdict(G.settings), **card}, indent=2) + "\n")

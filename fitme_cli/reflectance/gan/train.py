@@ -195,6 +195,8 @@ def save_checkpoint(state: TrainState, path: Path) -> None:
     """Atomic: written beside ``path`` then renamed. safetensors only; settings in the metadata."""
     from safetensors.torch import save_file
 
+    from ...io.atomic import publish_file
+
     tensors: dict[str, torch.Tensor] = {}
     for name, module in (("G", state.G), ("D", state.D), ("G_ema", state.G_ema)):
         tensors.update({f"{name}.{k}": v.detach().contiguous() for k, v in module.state_dict().items()})
@@ -207,7 +209,7 @@ def save_checkpoint(state: TrainState, path: Path) -> None:
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata=meta)
-    tmp.replace(path)
+    publish_file(tmp, path)
 
 
 def _settings(cls, d: dict):
