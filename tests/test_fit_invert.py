@@ -5,6 +5,7 @@ import torch
 
 from fitme_cli.fitting.invert import InversionSettings, PhotoInput, invert
 from fitme_cli.reflectance.gan.networks import GanSettings, Generator, decode_maps
+from fitme_cli.reflectance.maps import ReflectanceMaps
 from fitme_cli.render import Camera, Effects, Lights, Renderer
 from fitme_cli.render.camera import project
 
@@ -37,3 +38,41 @@ def test_inversion_keeps_the_landmarks_and_fits_the_light(models_root):
     pred = project(sm(res.p_s, res.p_e).vertices[:, sm.landmarks], res.cameras)[0, :, :2].numpy()
     assert np.abs(pred - lm).mean() < 1.0  # PnP start; the loop keeps the landmarks within a pixel
     assert res.maps.albedo.shape == (1, 3, 16, 16) and res.p_e.shape == (1, sm.n_expressions)
+
+
+def test_tuning_trains_only_the_middle_layers_and_lowers_its_loss(models_root):
+    from fitme_cli.fitting.invert import TuningSettings, tune
+    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+    from fitme_cli.shape.model import load_shape_model
+
+    torch.set_num_threads(1)
+    torch.manual_seed(1)
+    sm = load_shape_model(models_root)
+    size = 96
+    cam = Camera.looking_at_face(1, size, size, distance_mm=420, focal_35mm=50)
+    G = Generator(GanSettings(resolution=32, branch_resolution=32, channel_base=128, channel_max=16, z_dim=16, w_dim=16))
+    shp = sm(*sm.zeros(1))
+    lights = Lights(torch.full((1, 3), 0.5), torch.tensor([[[0.0, 0.0, 1.0]]]), torch.full((1, 1, 3), 0.5))
+    reddish = ReflectanceMaps(torch.tensor([0.5, 0.2, 0.15]).view(1, 3, 1, 1).expand(1, 3, 32, 32).clone(),
+                              torch.full((1, 1, 32, 32), 0.2), torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(1, 3, 32, 32).clone())
+    with torch.no_grad():
+        photo = Renderer.for_shape_model(sm)(shp.vertices, shp.normals, shp.tangents, reddish, cam, lights, Effects.none())
+    crop = (photo.image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    lm = project(shp.vertices[:, sm.landmarks], cam)[0, :, :2].numpy().astype(np.float32)
+    p = PhotoInput(crop, lm, lm[np.linspace(0, 467, 68).astype(int)], photo.mask[0, 0].numpy(), float(cam.focal[0, 0]),
+                   np.array([size / 2, size / 2]), np.eye(2, 3))
+    ws = G.ws(torch.randn(1, 16)).detach()
+    with torch.no_grad():
+        maps0 = decode_maps(G.synthesis(ws, noise_mode="const"), G.settings)
+    from fitme_cli.fitting.invert import InversionResult
+
+    inv = InversionResult(ws, *sm.zeros(1), cam, lights, maps0, [])
+    before = {k: v.clone() for k, v in G.state_dict().items()}
+    res = tune([p], G, inv, sm, load_dlib_resnet(models_root), sm.landmarks, np.arange(10),
+               torch.ones(32, 32, dtype=torch.bool), TuningSettings(iterations=12, lr=1e-2, effects=Effects.none()))
+    middle = G.synthesis.middle_layers(4)
+    changed = {k for k, v in G.state_dict().items() if not torch.equal(v, before[k])}
+    assert changed and changed == set(res.layers)
+    assert all(any(f".{m.split('.')[0]}.{m.split('.')[1]}." in k for m in middle) for k in changed)
+    assert res.history[-1]["photometric"] < res.history[0]["photometric"]
+    assert all(np.isfinite(list(r.values())).all() for r in res.history)
