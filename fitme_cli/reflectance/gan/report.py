@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .data import load_dataset
-from .metrics import (channel_stats, frechet_distance, interpolation_smoothness, modality_consistency,
+from .metrics import (ChannelStats, frechet_distance, interpolation_smoothness, modality_consistency,
                       reflectance_features)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
@@ -25,23 +25,33 @@ __all__ = ["evaluate", "main"]
 _CHANNELS = ("albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z")
 
 
-def _fake(G: Generator, n: int, seed: int, batch: int = 16) -> torch.Tensor:
+class _Stats:
+    """Streaming per-channel mean and std over the mapped texels."""
+
+    def __init__(self, mapped: torch.Tensor):
+        self.m, self.n, self.s, self.ss = mapped, 0, torch.zeros(7, dtype=torch.float64), torch.zeros(7, dtype=torch.float64)
+
+    def add(self, x: torch.Tensor) -> None:
+        v = x.double().permute(1, 0, 2, 3)[:, :, self.m].reshape(7, -1)
+        self.n += v.shape[1]
+        self.s += v.sum(1)
+        self.ss += v.square().sum(1)
+
+    def result(self) -> ChannelStats:
+        mean = self.s / self.n
+        return ChannelStats(mean.tolist(), (self.ss / self.n - mean.square()).clamp(min=0).sqrt().tolist())
+
+
+def _batches(G: Generator, data: torch.Tensor | None, n: int, seed: int, batch: int = 32):
+    """Physical (b, 7, R, R) batches: generated (data None) or decoded from the data tensor."""
     g = torch.Generator().manual_seed(seed)
-    out = []
     with torch.no_grad():
         for i in range(0, n, batch):
-            z = torch.randn(min(batch, n - i), G.settings.z_dim, generator=g)
-            m = decode_maps(G(z, noise_mode="random"), G.settings)
-            out.append(torch.cat([m.albedo, m.specular, m.normals], 1))
-    return torch.cat(out)
-
-
-def _phys(data: torch.Tensor, G: Generator) -> torch.Tensor:
-    out = []
-    for i in range(0, len(data), 64):
-        m = decode_maps(GanImages.split(data[i : i + 64].float()), G.settings)
-        out.append(torch.cat([m.albedo, m.specular, m.normals], 1))
-    return torch.cat(out)
+            k = min(batch, n - i)
+            imgs = G(torch.randn(k, G.settings.z_dim, generator=g), noise_mode="random") if data is None \
+                else GanImages.split(data[i : i + k].float())
+            m = decode_maps(imgs, G.settings)
+            yield torch.cat([m.albedo, m.specular, m.normals], 1)
 
 
 def _encoded(stats_mean, stats_std):
@@ -51,28 +61,35 @@ def _encoded(stats_mean, stats_std):
     return mean, std
 
 
-def evaluate(G: Generator, data_phys: torch.Tensor, regions: torch.Tensor, n_fake: int = 1000, seed: int = 0) -> dict:
-    """All card metrics. data_phys: (N, 7, R, R) physical maps; regions: (R, R) uint8 labels."""
+def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
+             seed: int = 0) -> dict:
+    """All card metrics. data: (N, 7, R, R) network space; regions: (R, R) uint8 labels. Streams in
+    batches (the whole set in float32 would be gigabytes)."""
     mapped = regions != 255
-    fake = _fake(G, n_fake, seed)
-    fs, rs = channel_stats(fake, mapped), channel_stats(data_phys, mapped)
-    fm, fsd = _encoded(fs.mean, fs.std)
-    rm, rsd = _encoded(rs.mean, rs.std)
+    skin = torch.zeros_like(mapped)
+    for lab in (1, 2, 5):  # skin, forehead, nose: where the wrinkles and pores are
+        skin |= regions == lab
+    n_real = min(n_real, len(data))
+    half = n_real // 2
+    feats, stats, cons = {}, {}, {}
+    for name, src, n in (("gan", None, n_fake), ("data", data[:n_real], n_real)):
+        st, fs, cm = _Stats(mapped), [], []
+        for x in _batches(G, src, n, seed):
+            st.add(x)
+            fs.append(reflectance_features(x, regions))
+            if sum(len(c) for c in cm) < 200:
+                cm.append(x)
+        stats[name], feats[name] = st.result(), np.concatenate(fs)
+        cons[name] = modality_consistency(torch.cat(cm)[:200], skin)
+    fm, fsd = _encoded(stats["gan"].mean, stats["gan"].std)
+    rm, rsd = _encoded(stats["data"].mean, stats["data"].std)
     per_channel = {name: {"data_mean": round(rm[i], 4), "gan_mean": round(fm[i], 4),
                           "mean_rel_diff": round(abs(fm[i] - rm[i]) / abs(rm[i]), 4),
                           "data_std": round(rsd[i], 4), "gan_std": round(fsd[i], 4),
                           "std_rel_diff": round(abs(fsd[i] - rsd[i]) / rsd[i], 4)} for i, name in enumerate(_CHANNELS)}
-    half = len(data_phys) // 2
-    fa = reflectance_features(data_phys[:half], regions)
-    fb = reflectance_features(data_phys[half:], regions)
-    ff = reflectance_features(fake, regions)
-    fd_gan = frechet_distance(ff[: len(fb)], fb)
+    fa, fb = feats["data"][:half], feats["data"][half:]
+    fd_gan = frechet_distance(feats["gan"][: len(fb)], fb)
     fd_split = frechet_distance(fa, fb)
-    skin = torch.zeros_like(mapped)
-    for lab in (1, 2, 5):  # skin, forehead, nose: where the wrinkles and pores are
-        skin |= regions == lab
-    cons_fake = modality_consistency(fake[:200], skin)
-    cons_data = modality_consistency(data_phys[:200], skin)
     g = torch.Generator().manual_seed(seed + 1)
     ratios = []
     with torch.no_grad():
@@ -83,19 +100,18 @@ def evaluate(G: Generator, data_phys: torch.Tensor, regions: torch.Tensor, n_fak
             ratios.append(interpolation_smoothness(walk))
     return {
         "per_channel": per_channel,
-        "albedo_pooled_mean_std": [round(float(fake[:, :4][:, :, mapped].mean()), 4), round(float(fake[:, :4][:, :, mapped].std()), 4)],
-        "data_albedo_pooled_mean_std": [round(float(data_phys[:, :4][:, :, mapped].mean()), 4), round(float(data_phys[:, :4][:, :, mapped].std()), 4)],
-        "frechet_reflectance_features": {"gan_vs_heldout_half": round(fd_gan, 3), "half_vs_half": round(fd_split, 3),
-                                         "samples": [len(ff[: len(fb)]), len(fb)]},
-        "modality_consistency": {"gan_matched": round(cons_fake[0], 3), "gan_mismatched": round(cons_fake[1], 3),
-                                 "data_matched": round(cons_data[0], 3), "data_mismatched": round(cons_data[1], 3)},
+        "frechet_reflectance_features": {"gan_vs_heldout_half": round(fd_gan, 4), "half_vs_half": round(fd_split, 4),
+                                         "samples": [min(len(feats["gan"]), len(fb)), len(fb)]},
+        "modality_consistency": {"gan_matched": round(cons["gan"][0], 3), "gan_mismatched": round(cons["gan"][1], 3),
+                                 "data_matched": round(cons["data"][0], 3), "data_mismatched": round(cons["data"][1], 3)},
         "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
     }
 
 
 def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
     """brdf_gan_samples.png (16 GAN triplets), brdf_gan_data.png (16 training triplets),
-    brdf_gan_interpolation.png (4 latent walks, 8 steps, albedo and normals)."""
+    brdf_gan_interpolation.png (4 latent walks, 8 steps, albedo and normals); at half resolution (the
+    docs stay small; full-resolution grids are in the training run's samples/)."""
     from ...io.atomic import atomic_write_image
     from .train import sample_grid
 
@@ -106,7 +122,7 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
     grid = sample_grid(G, z)
     r = G.settings.resolution
     two = np.concatenate([grid[: 8 * r], grid[8 * r :]], 1)  # 8 rows x 2 columns of triplets
-    atomic_write_image(out_dir / "brdf_gan_samples.png", two)
+    atomic_write_image(out_dir / "brdf_gan_samples.png", _half(two))
     paths.append(out_dir / "brdf_gan_samples.png")
 
     class _Fixed(torch.nn.Module):  # replays data through sample_grid's drawing
@@ -116,7 +132,7 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
             return GanImages.split(data[:16].float())
 
     grid = sample_grid(_Fixed(), z)
-    atomic_write_image(out_dir / "brdf_gan_data.png", np.concatenate([grid[: 8 * r], grid[8 * r :]], 1))
+    atomic_write_image(out_dir / "brdf_gan_data.png", _half(np.concatenate([grid[: 8 * r], grid[8 * r :]], 1)))
     paths.append(out_dir / "brdf_gan_data.png")
 
     from .networks import _linear_to_srgb
@@ -133,9 +149,21 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
             crop = slice(r // 4, 3 * r // 4)  # the face
             rows.append(torch.cat(list(torch.cat([alb, nrm], 2)[:, :, :, crop]), 2))
     img = torch.cat(rows, 1).permute(1, 2, 0).numpy()
-    atomic_write_image(out_dir / "brdf_gan_interpolation.png", (img * 255 + 0.5).astype(np.uint8))
+    atomic_write_image(out_dir / "brdf_gan_interpolation.png", _half((img * 255 + 0.5).astype(np.uint8)))
     paths.append(out_dir / "brdf_gan_interpolation.png")
     return paths
+
+
+def state_data_count(data_dir: Path) -> int:
+    from .data import find_samples
+
+    return len(find_samples(data_dir))
+
+
+def _half(img: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -150,22 +178,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("data_dir", type=Path)
     ap.add_argument("-o", "--models", type=Path, required=True)
     ap.add_argument("--figures", type=Path)
-    ap.add_argument("--n-fake", type=int, default=1000)
+    ap.add_argument("--n-fake", type=int, default=500)
+    ap.add_argument("--n-real", type=int, default=1000, help="training samples compared (two halves)")
     ap.add_argument("--train-command", default="", help="recorded in the card")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     state = load_checkpoint(args.run_dir / "checkpoint.safetensors")
     G = copy_generator(state.G_ema)
-    data = load_dataset(args.data_dir, G.settings, progress=True)
-    data_phys = _phys(data, G)
+    data = load_dataset(args.data_dir, G.settings, limit=args.n_real, progress=True)
     region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
     import cv2
 
     regions = torch.from_numpy(cv2.resize(region_uv, (G.settings.resolution,) * 2, interpolation=cv2.INTER_NEAREST))
-    metrics = evaluate(G, data_phys, regions, n_fake=args.n_fake)
+    metrics = evaluate(G, data, regions, n_fake=args.n_fake, n_real=args.n_real)
     data_card = json.loads((args.data_dir / "dataset.json").read_text()) if (args.data_dir / "dataset.json").is_file() else {}
     card = {
-        "data": {"samples": len(data), "resolution": G.settings.resolution,
+        "data": {"samples": state_data_count(args.data_dir), "compared": len(data), "resolution": G.settings.resolution,
                  "generator": "fitme dataset (fitme_cli/reflectance/skin_data.py)",
                  "dataset_settings": data_card.get("settings"), "dataset_seed": data_card.get("seed")},
         "training": {"kimg": round(state.nimg / 1000, 3), "steps": state.step, "wall_time_h": round(state.wall_time / 3600, 3),
