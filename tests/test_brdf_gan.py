@@ -324,3 +324,30 @@ def test_shipped_generator_round_trip(tmp_path):
     assert json.loads((tmp_path / "brdf_gan.json").read_text())["settings"]["resolution"] == 16
     with pytest.raises(ModelMissing):
         load_generator(tmp_path / "nowhere")
+
+
+def test_quality_metrics(dataset_dir, models_root):
+    """The card's metrics on tiny data: all present and finite; known values of the distance and the
+    smoothness measure."""
+    import cv2
+    from safetensors.numpy import load_file
+
+    from fitme_cli.reflectance.gan.data import load_dataset
+    from fitme_cli.reflectance.gan.metrics import frechet_distance, interpolation_smoothness
+    from fitme_cli.reflectance.gan.report import evaluate
+
+    s = GanSettings(resolution=64, branch_resolution=64, channel_base=64, channel_max=16, z_dim=8, w_dim=8)
+    data = load_dataset(dataset_dir, s)
+    region_uv = load_file(str(models_root / "shape_model.safetensors"))["region_uv"]
+    regions = torch.from_numpy(cv2.resize(region_uv, (64, 64), interpolation=cv2.INTER_NEAREST))
+    m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
+    assert set(m) == {"per_channel", "frechet_reflectance_features", "modality_consistency", "interpolation_max_over_mean_step"}
+    assert len(m["per_channel"]) == 7 and all(np.isfinite(v) for c in m["per_channel"].values() for v in c.values())
+    fd = m["frechet_reflectance_features"]
+    assert fd["gan_vs_heldout_half"] > 0 and fd["half_vs_half"] >= 0  # (8 samples: too few to rank them)
+    assert all(-1 <= v <= 1 for v in m["modality_consistency"].values())  # correlations (at 64^2 the pores are sub-texel)
+    a = np.random.default_rng(0).normal(size=(50, 3))
+    assert frechet_distance(a, a) == pytest.approx(0.0, abs=1e-6)
+    assert frechet_distance(a, a + 2.0) == pytest.approx(12.0, rel=1e-6)  # |mean shift|^2 = 3 * 4
+    walk = torch.linspace(0, 1, 9).view(9, 1, 1, 1).expand(9, 3, 4, 4)
+    assert interpolation_smoothness(walk) == pytest.approx(1.0)
