@@ -17,6 +17,7 @@ _COMMANDS = {  # name -> module under fitme_cli.cli, imported only when the comm
     "augment": "augment",
     "dataset": "dataset",
     "train": "train",
+    "fit": "fit",
 }
 
 

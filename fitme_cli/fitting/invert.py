@@ -215,7 +215,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         opt.step()
         with torch.no_grad():
             light_dir.copy_(torch.nn.functional.normalize(light_dir, dim=-1))
-        rec = {"total": float(total)} | {k: float(v.mean()) for k, v in weighted.items()}
+        rec = {"total": float(total.detach())} | {k: float(v.detach().mean()) for k, v in weighted.items()}
         history.append(rec)
         if progress is not None:
             progress(it, s.iterations, rec)
@@ -257,7 +257,7 @@ def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_mod
         opt.zero_grad(set_to_none=True)
         total.backward()
         opt.step()
-        rec = {"total": float(total)} | {k: float(v.mean()) for k, v in weighted.items()}
+        rec = {"total": float(total.detach())} | {k: float(v.detach().mean()) for k, v in weighted.items()}
         history.append(rec)
         if progress is not None:
             progress(it, s.iterations, rec)
