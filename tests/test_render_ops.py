@@ -408,7 +408,8 @@ def test_bilinear_lookup_kernel_matches_sample_texture_and_gradcheck():
 
 
 def test_gather_interpolate_sparse_kernels_gradcheck():
-    from fitme_cli.render._kernels import gather_rows, interpolate_rows, sparse_apply
+    from fitme_cli.ops.sparse import sparse_apply
+    from fitme_cli.render._kernels import gather_rows, interpolate_rows
     from fitme_cli.render.shading import mesh_smoothing_operator
 
     torch.manual_seed(4)

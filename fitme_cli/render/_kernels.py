@@ -12,7 +12,7 @@ import numba
 import numpy as np
 import torch
 
-__all__ = ["interpolate_rows", "gather_rows", "bilinear_lookup", "sparse_apply"]
+__all__ = ["interpolate_rows", "gather_rows", "bilinear_lookup"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -153,23 +153,6 @@ def bilinear_lookup(tex: torch.Tensor, batch_index: torch.Tensor, uv: torch.Tens
     """(B, C, H, W) texture at (N, 2) uv of batch elements ``batch_index`` (N,) -> (N, C); the same
     sampling as ``texture.sample_texture`` (bilinear, texel centres, border clamp)."""
     return _BilinearLookup.apply(tex.contiguous(), batch_index.contiguous(), uv.contiguous())
-
-
-class _SparseApply(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, op, op_t):
-        ctx.op_t = op_t
-        return op @ x
-
-    @staticmethod
-    def backward(ctx, g):
-        return ctx.op_t @ g, None, None
-
-
-def sparse_apply(op: torch.Tensor, op_t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """op @ x for a constant sparse CSR op, with op^T (precomputed) for the backward: torch's own CSR
-    backward rebuilds the transpose every call (measured 5x slower)."""
-    return _SparseApply.apply(x, op, op_t)
 
 
 @numba.njit(cache=True, nogil=True)

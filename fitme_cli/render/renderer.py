@@ -67,11 +67,9 @@ class Renderer(nn.Module):
         self.register_buffer("uv_faces", uv_faces.long())
         self.register_buffer("adjacency", face_adjacency(faces))
         self._smooth = mesh_smoothing_operator(faces, n_vertices)
-        import warnings
+        from ..ops.sparse import to_csr
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)
-            self._smooth_t = self._smooth.to_sparse_coo().t().coalesce().to_sparse_csr()
+        self._smooth_t = to_csr(self._smooth.to_sparse_coo().t())
         self._smooth_cache: dict = {}
 
     @staticmethod

@@ -27,18 +27,31 @@ class ShapeOutput:
     tangents: torch.Tensor  # (B, V, 4): unit tangent along +u of the UV layout, w = handedness (+-1)
 
 
-def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+def _accumulate(per_face: torch.Tensor, faces: torch.Tensor, like: torch.Tensor, incidence=None) -> torch.Tensor:
+    """Sum per-face values (B, F, C) onto each face's three vertices -> (B, V, C). With ``incidence``
+    (``ops.sparse.incidence``: one CSR product, ~10x faster on the CPU) or by index_add (the reference)."""
+    if incidence is None:
+        out = torch.zeros(*like.shape[:2], per_face.shape[-1], dtype=per_face.dtype, device=per_face.device)
+        for i in range(3):
+            out = out.index_add(1, faces[:, i], per_face)
+        return out
+    from ..ops.sparse import sparse_apply
+
+    b, f, c = per_face.shape
+    x = per_face.permute(1, 0, 2).reshape(f, b * c).repeat(3, 1)  # (3F, B*C): one row per corner
+    a, at = incidence
+    return sparse_apply(a, at, x).view(-1, b, c).permute(1, 0, 2)
+
+
+def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor, incidence=None) -> torch.Tensor:
     """(B, V, 3), (F, 3) long -> (B, V, 3) unit area-weighted vertex normals."""
     v0, v1, v2 = (vertices[:, faces[:, i]] for i in range(3))
     fn = torch.cross(v1 - v0, v2 - v0, dim=-1)  # length = 2 x area
-    n = torch.zeros_like(vertices)
-    for i in range(3):
-        n = n.index_add(1, faces[:, i], fn)
-    return torch.nn.functional.normalize(n, dim=-1, eps=1e-12)
+    return torch.nn.functional.normalize(_accumulate(fn, faces, vertices, incidence), dim=-1, eps=1e-12)
 
 
 def vertex_tangents(vertices: torch.Tensor, faces: torch.Tensor, uv: torch.Tensor, uv_faces: torch.Tensor,
-                    normals: torch.Tensor) -> torch.Tensor:
+                    normals: torch.Tensor, incidence=None) -> torch.Tensor:
     """Per-vertex tangent frame for tangent-space normal maps (the MikkTSpace idea, simplified):
     per-face dP/du accumulated on vertices, orthogonalised against the normal. Returns (B, V, 4) with
     w = +1 when (N x T) points along +v, else -1 (glTF's convention for the bitangent)."""
@@ -50,11 +63,8 @@ def vertex_tangents(vertices: torch.Tensor, faces: torch.Tensor, uv: torch.Tenso
     r = torch.where(det.abs() > 1e-12, 1.0 / det, torch.zeros_like(det))[None, :, None]
     tan = (e1 * d2[None, :, 1:2] - e2 * d1[None, :, 1:2]) * r
     bit = (e2 * d1[None, :, 0:1] - e1 * d2[None, :, 0:1]) * r
-    T = torch.zeros_like(vertices)
-    Bt = torch.zeros_like(vertices)
-    for i in range(3):
-        T = T.index_add(1, faces[:, i], tan)
-        Bt = Bt.index_add(1, faces[:, i], bit)
+    acc = _accumulate(torch.cat([tan, bit], -1), faces, vertices, incidence)
+    T, Bt = acc[..., :3], acc[..., 3:]
     T = T - normals * (normals * T).sum(-1, keepdim=True)
     T = torch.nn.functional.normalize(T, dim=-1, eps=1e-12)
     w = torch.where((torch.cross(normals, T, dim=-1) * Bt).sum(-1, keepdim=True) < 0, -1.0, 1.0)
@@ -94,10 +104,22 @@ class ShapeModel(nn.Module):
         return (self.mean + torch.einsum("vck,bk->bvc", self.identity_basis, p_s)
                 + torch.einsum("vce,be->bvc", self.expression_basis, p_e))
 
+    def _incidence(self, v: torch.Tensor):
+        key = (v.dtype, v.device)
+        if not hasattr(self, "_incidence_cache"):
+            self._incidence_cache = {}
+        if key not in self._incidence_cache:
+            from ..ops.sparse import incidence
+
+            a, at = incidence(self.triangles.cpu(), self.mean.shape[0])
+            self._incidence_cache[key] = (a.to(device=v.device, dtype=v.dtype), at.to(device=v.device, dtype=v.dtype))
+        return self._incidence_cache[key]
+
     def forward(self, p_s: torch.Tensor, p_e: torch.Tensor) -> ShapeOutput:
         v = self.vertices(p_s, p_e)
-        n = vertex_normals(v, self.triangles)
-        return ShapeOutput(v, n, vertex_tangents(v, self.triangles, self.uv, self.uv_faces, n))
+        inc = self._incidence(v)
+        n = vertex_normals(v, self.triangles, inc)
+        return ShapeOutput(v, n, vertex_tangents(v, self.triangles, self.uv, self.uv_faces, n, inc))
 
     def identity_prior(self, p_s: torch.Tensor) -> torch.Tensor:
         """(B,) ||p_s||^2 in the metric Sigma_s^-1 (a squared Mahalanobis distance, unitless)."""

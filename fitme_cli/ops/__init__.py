@@ -1,0 +1,1 @@
+"""Small numeric building blocks shared by the shape model and the renderer."""
