@@ -243,3 +243,24 @@ def test_build_is_deterministic(root, tmp_path):
 
     build(tmp_path)
     assert (tmp_path / "shape_model.safetensors").read_bytes() == (root / "shape_model.safetensors").read_bytes()
+
+
+def test_fast_normals_and_tangents_match_the_index_add_reference(model):
+    """forward() accumulates per-face values with one CSR product; the plain index_add loop is the reference."""
+    import copy
+
+    m = copy.deepcopy(model).double()  # the fixture is shared: leave it float32
+    p_s = m.sample_identity(2, torch.Generator().manual_seed(3)).requires_grad_(True)
+    p_e = torch.zeros(2, m.n_expressions, dtype=torch.float64)
+    out = m(p_s, p_e)
+    n_ref = vertex_normals(out.vertices, m.triangles)
+    t_ref = vertex_tangents(out.vertices, m.triangles, m.uv, m.uv_faces, n_ref)
+    torch.testing.assert_close(out.normals, n_ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.tangents, t_ref, rtol=0, atol=1e-12)
+    w = torch.sin(out.vertices.detach())
+    g_fast = torch.autograd.grad((out.normals * w).sum() + (out.tangents[..., :3] * w).sum(), p_s)[0]
+    out2 = m(p_s, p_e)
+    n2 = vertex_normals(out2.vertices, m.triangles)
+    t2 = vertex_tangents(out2.vertices, m.triangles, m.uv, m.uv_faces, n2)
+    g_ref = torch.autograd.grad((n2 * w).sum() + (t2[..., :3] * w).sum(), p_s)[0]
+    torch.testing.assert_close(g_fast, g_ref, rtol=1e-9, atol=1e-12)
