@@ -245,11 +245,9 @@ def test_build_is_deterministic(root, tmp_path):
     assert (tmp_path / "shape_model.safetensors").read_bytes() == (root / "shape_model.safetensors").read_bytes()
 
 
-def test_fast_normals_and_tangents_match_the_index_add_reference(model):
+def test_fast_normals_and_tangents_match_the_index_add_reference(root):
     """forward() accumulates per-face values with one CSR product; the plain index_add loop is the reference."""
-    import copy
-
-    m = copy.deepcopy(model).double()  # the fixture is shared: leave it float32
+    m = load_shape_model(root).double()  # its own copy: the shared fixture stays float32
     p_s = m.sample_identity(2, torch.Generator().manual_seed(3)).requires_grad_(True)
     p_e = torch.zeros(2, m.n_expressions, dtype=torch.float64)
     out = m(p_s, p_e)
