@@ -20,6 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _cases():
+    sys.path.insert(0, str(REPO / "tests"))  # the cases import tests/render_scenes.py
     spec = importlib.util.spec_from_file_location("render_stability_cases", REPO / "tests" / "test_render_stability.py")
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up

@@ -16,3 +16,15 @@ def astronaut() -> np.ndarray:
     from skimage import data
 
     return data.astronaut()
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """torch on one thread for a test module: small tensors run faster, and a concurrent job on the
+    2 cores does not make OpenMP threads spin against each other."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

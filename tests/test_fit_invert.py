@@ -1,6 +1,7 @@
 """Smoke test of the inversion loop on a synthetic photo with a known pose (a tiny random generator)."""
 
 import numpy as np
+import pytest
 import torch
 
 from fitme_cli.fitting.invert import InversionSettings, PhotoInput, invert
@@ -9,26 +10,35 @@ from fitme_cli.reflectance.maps import ReflectanceMaps
 from fitme_cli.render import Camera, Effects, Lights, Renderer
 from fitme_cli.render.camera import project
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _synthetic_photo(sm, size: int, maps: ReflectanceMaps, lights: Lights):
+    """A render of the mean face through a frontal camera, as a PhotoInput with exact landmarks.
+    Returns (photo, camera, landmarks (468, 2))."""
+    cam = Camera.looking_at_face(1, size, size, distance_mm=420, focal_35mm=50)
+    shp = sm(*sm.zeros(1))
+    with torch.no_grad():
+        photo = Renderer.for_shape_model(sm)(shp.vertices, shp.normals, shp.tangents, maps, cam, lights, Effects.none())
+    crop = (photo.image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    lm = project(shp.vertices[:, sm.landmarks], cam)[0, :, :2].numpy().astype(np.float32)
+    i68 = lm[np.linspace(0, 467, 68).astype(int)]  # any 68 spread points suffice for the chip transform here
+    p = PhotoInput(crop, lm, i68, photo.mask[0, 0].numpy(), float(cam.focal[0, 0]), np.array([size / 2, size / 2]), np.eye(2, 3))
+    return p, cam, lm
+
 
 def test_inversion_keeps_the_landmarks_and_fits_the_light(models_root):
     from fitme_cli.perception.dlib_resnet import load_dlib_resnet
     from fitme_cli.shape.model import load_shape_model
 
-    torch.set_num_threads(1)
     torch.manual_seed(0)
     sm = load_shape_model(models_root)
     size = 128
-    cam = Camera.looking_at_face(1, size, size, distance_mm=420, focal_35mm=50)
     G = Generator(GanSettings(resolution=16, branch_resolution=16, channel_base=64, channel_max=16, z_dim=16, w_dim=16))
-    shp = sm(*sm.zeros(1))
     bright = Lights(torch.full((1, 3), 0.9), torch.tensor([[[0.0, 0.0, 1.0]]]), torch.full((1, 1, 3), 0.6))
     with torch.no_grad():  # the "photo": the mean face, W average, under a brighter light than the start
-        maps = decode_maps(G.synthesis(G.ws(torch.zeros(1, 16)) * 0 + G.w_avg, noise_mode="const"), G.settings)
-        photo = Renderer.for_shape_model(sm)(shp.vertices, shp.normals, shp.tangents, maps, cam, bright, Effects.none())
-    crop = (photo.image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-    lm = project(shp.vertices[:, sm.landmarks], cam)[0, :, :2].numpy().astype(np.float32)
-    i68 = lm[np.linspace(0, 467, 68).astype(int)]
-    p = PhotoInput(crop, lm, i68, photo.mask[0, 0].numpy(), float(cam.focal[0, 0]), np.array([size / 2, size / 2]), np.eye(2, 3))
+        maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
+    p, cam, lm = _synthetic_photo(sm, size, maps, bright)
     s = InversionSettings(iterations=15, render_size=size, coarse_resolution=8, effects=Effects.none(),
                           lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4))
     res = invert([p], G, sm, load_dlib_resnet(models_root), sm.landmarks, np.arange(10), s)
@@ -45,22 +55,13 @@ def test_tuning_trains_only_the_middle_layers_and_lowers_its_loss(models_root):
     from fitme_cli.perception.dlib_resnet import load_dlib_resnet
     from fitme_cli.shape.model import load_shape_model
 
-    torch.set_num_threads(1)
     torch.manual_seed(1)
     sm = load_shape_model(models_root)
-    size = 96
-    cam = Camera.looking_at_face(1, size, size, distance_mm=420, focal_35mm=50)
     G = Generator(GanSettings(resolution=32, branch_resolution=32, channel_base=128, channel_max=16, z_dim=16, w_dim=16))
-    shp = sm(*sm.zeros(1))
     lights = Lights(torch.full((1, 3), 0.5), torch.tensor([[[0.0, 0.0, 1.0]]]), torch.full((1, 1, 3), 0.5))
     reddish = ReflectanceMaps(torch.tensor([0.5, 0.2, 0.15]).view(1, 3, 1, 1).expand(1, 3, 32, 32).clone(),
                               torch.full((1, 1, 32, 32), 0.2), torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(1, 3, 32, 32).clone())
-    with torch.no_grad():
-        photo = Renderer.for_shape_model(sm)(shp.vertices, shp.normals, shp.tangents, reddish, cam, lights, Effects.none())
-    crop = (photo.image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-    lm = project(shp.vertices[:, sm.landmarks], cam)[0, :, :2].numpy().astype(np.float32)
-    p = PhotoInput(crop, lm, lm[np.linspace(0, 467, 68).astype(int)], photo.mask[0, 0].numpy(), float(cam.focal[0, 0]),
-                   np.array([size / 2, size / 2]), np.eye(2, 3))
+    p, cam, _ = _synthetic_photo(sm, 96, reddish, lights)
     ws = G.ws(torch.randn(1, 16)).detach()
     with torch.no_grad():
         maps0 = decode_maps(G.synthesis(ws, noise_mode="const"), G.settings)

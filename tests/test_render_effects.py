@@ -11,12 +11,7 @@ from fitme_cli.render import Camera, Effects, Lights, Renderer, RenderSettings, 
 from fitme_cli.render.effects import EFFECT_NAMES, highlight_fraction, parse_effects
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_parse_effects():

@@ -12,14 +12,10 @@ from fitme_cli.render.camera import Camera, focal_px_from_35mm, frontal_rotation
 from fitme_cli.render.raster import (_visibility, _visibility_ref, barycentrics, interpolate, rasterize,
                                      scatter_image)
 from fitme_cli.render.texture import _sample_texture_ref, sample_texture
+from render_scenes import bump_mesh  # tests/ is on sys.path (pytest rootdir conftest)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _cam(batch=1, w=32, h=32, f=40.0, dtype=torch.float64, rotation=None, translation=(0.0, 0.0, 100.0)):
@@ -571,25 +567,6 @@ def test_antialias_occlusion_boundary_blends():
 
 
 # ----------------------------------------------------------------------------------------------- reference renderer
-
-
-def bump_mesh(n=6, size=60.0, height=15.0, dtype=torch.float64):
-    """An n x n vertex grid in the world x-y plane with a Gaussian bump toward +z (the camera), outward
-    (counter-clockwise seen from +z) triangles, UVs u = x, v = y, and the shape model's normals and
-    tangents. Returns vertices (1, V, 3), normals, tangents (1, V, 4), faces, uv (V, 2) float32, uv_faces."""
-    from fitme_cli.shape.model import vertex_normals, vertex_tangents
-
-    t = torch.linspace(-size / 2, size / 2, n, dtype=dtype)
-    y, x = torch.meshgrid(t, t, indexing="ij")
-    z = height * torch.exp(-(x**2 + y**2) / (2 * (size / 4) ** 2))
-    verts = torch.stack([x, y, z], -1).reshape(1, -1, 3)
-    idx = torch.arange(n * n).view(n, n)
-    a, b, c, d = idx[:-1, :-1].reshape(-1), idx[:-1, 1:].reshape(-1), idx[1:, 1:].reshape(-1), idx[1:, :-1].reshape(-1)
-    faces = torch.cat([torch.stack([a, b, c], 1), torch.stack([a, c, d], 1)])
-    uv = ((verts[0, :, :2] + size / 2) / size).float()
-    normals = vertex_normals(verts, faces)
-    tangents = vertex_tangents(verts, faces, uv.to(dtype), faces, normals)
-    return verts, normals, tangents, faces, uv, faces.clone()
 
 
 def smooth_maps(r=8, seed=0, dtype=torch.float64):

@@ -25,36 +25,15 @@ from fitme_cli.render.raster import barycentrics, rasterize
 from fitme_cli.render.renderer import Renderer, RenderSettings
 from fitme_cli.render.shading import (diffuse_irradiance, linear_to_srgb, safe_normalize, specular_reflectance,
                                       tangent_to_world)
+from render_scenes import bump_mesh  # tests/ is on sys.path (pytest rootdir conftest)
 
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # ----------------------------------------------------------------------------------------------- scenes
-
-
-def bump_mesh(n=6, size=60.0, height=15.0, dtype=F64):
-    """n x n grid in the world x-y plane, a Gaussian bump toward +z (the camera), outward triangles."""
-    from fitme_cli.shape.model import vertex_normals, vertex_tangents
-
-    t = torch.linspace(-size / 2, size / 2, n, dtype=dtype)
-    y, x = torch.meshgrid(t, t, indexing="ij")
-    z = height * torch.exp(-(x**2 + y**2) / (2 * (size / 4) ** 2))
-    verts = torch.stack([x, y, z], -1).reshape(1, -1, 3)
-    idx = torch.arange(n * n).view(n, n)
-    a, b, c, d = idx[:-1, :-1].reshape(-1), idx[:-1, 1:].reshape(-1), idx[1:, 1:].reshape(-1), idx[1:, :-1].reshape(-1)
-    faces = torch.cat([torch.stack([a, b, c], 1), torch.stack([a, c, d], 1)])
-    uv = ((verts[0, :, :2] + size / 2) / size).float()
-    normals = vertex_normals(verts, faces)
-    tangents = vertex_tangents(verts, faces, uv.to(dtype), faces, normals)
-    return verts, normals, tangents, faces, uv
 
 
 def procedural_maps(r=8, albedo=None, specular=None, tilt=0.25, dtype=F64):
@@ -101,7 +80,7 @@ class Scene:
 
 
 def bump_scene(dtype=F64, **kw) -> Scene:
-    verts, normals, tangents, faces, uv = bump_mesh(dtype=dtype)
+    verts, normals, tangents, faces, uv, _ = bump_mesh(dtype=dtype)
     s = Scene(verts, normals, tangents, faces, uv, procedural_maps(dtype=dtype), frontal_camera(dtype=dtype),
               scene_lights(dtype=dtype))
     return replace(s, **kw)
@@ -310,7 +289,7 @@ def case_texture(which: str):
         s = bump_scene(maps=procedural_maps(albedo=1.0, specular=1.0), lights=scene_lights(intensity=3.0))
     fw, bw = finite_render(s)
     # the (linear) render is linear in the albedo: gradcheck a tiny render w.r.t. the albedo map
-    verts, normals, tangents, faces, uv = bump_mesh(n=4)
+    verts, normals, tangents, faces, uv, _ = bump_mesh(n=4)
     maps = procedural_maps(r=3, albedo=0.0 if which == "black" else 1.0, specular=0.0 if which == "black" else 1.0)
     cam = frontal_camera(size=12, f=15.0)
     r = Renderer(faces, uv, faces, verts.shape[1], RenderSettings())

@@ -39,13 +39,13 @@ def _check_output_dir(path: Path) -> None:
         raise OutputNotWritable("overlay directory is not writable", path)
 
 
-def _overlay_names(photos: list[Path]) -> list[str]:
-    """``stem.overlay.png`` per photo, numbered where two photos share a stem."""
+def output_names(photos: list[Path], suffix: str) -> list[str]:
+    """``stem`` + ``suffix`` per photo, numbered where two photos share a stem (also used by ``fit``)."""
     names, seen = [], {}
     for p in photos:
         n = seen.get(p.stem, 0)
         seen[p.stem] = n + 1
-        names.append(f"{p.stem}.overlay.png" if n == 0 else f"{p.stem}-{n}.overlay.png")
+        names.append(f"{p.stem}{suffix}" if n == 0 else f"{p.stem}-{n}{suffix}")
     return names
 
 
@@ -100,7 +100,7 @@ def command(photos: tuple[Path, ...], output: Path | None, overlay: Path | None,
         _check_output_dir(overlay)
     settings = DetectSettings(min_face_px=min_face, rotations=not no_rotations, all_faces=all_faces, threads=threads)
     ensure_models(["blazeface_short", "blazeface_full", "facemesh", "dlib_resnet"])
-    names = _overlay_names(paths)
+    names = output_names(paths, ".overlay.png")
     inputs = {p.resolve() for p in paths if p.exists()}
     results, first_error = [], None
     bar = tqdm(paths, desc="detect", unit="photo", disable=len(paths) < 2 or None, file=sys.stderr)

@@ -146,14 +146,13 @@ def command(photos: tuple[Path, ...], out_dir: Path, iterations: int, tune_itera
     with torch.no_grad():
         shp = sm(inv.p_s.expand(len(prepared), -1), inv.p_e)
         out = renderer(shp.vertices, shp.normals, shp.tangents, maps, cam, inv.lights, eff)
-    names = []
-    for i, (p, path) in enumerate(zip(prepared, photos)):
+    from .detect import output_names
+
+    for i, (p, name) in enumerate(zip(prepared, output_names(list(photos), ".fit.png"))):
         ren = (out.image[i].permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
         over = p.crop.copy()
         m = out.mask[i, 0].numpy() > 0
         over[m] = ren[m]
-        name = f"{path.stem}.fit.png" if path.stem not in names else f"{path.stem}-{i}.fit.png"
-        names.append(path.stem)
         atomic_write_image(out_dir / name, np.concatenate([p.crop, ren, over], 1))
     timings["total_s"] = time.perf_counter() - t0
     report = {"schema": SCHEMA_VERSION, "inputs": records,

@@ -21,6 +21,7 @@ from ..reflectance.gan.networks import Generator, decode_maps
 from ..reflectance.maps import ReflectanceMaps
 from ..render import Camera, Effects, Lights, Renderer
 from ..render.camera import focal_px_from_35mm, project
+from ..render.shading import srgb_to_linear
 from .losses import identity_loss, landmark_loss, perceptual_loss, photometric_loss, w_prior
 from .pose import initial_camera
 
@@ -122,10 +123,6 @@ def _rodrigues(aa: torch.Tensor) -> torch.Tensor:
     return eye + s * kmat + (1 - c) * kmat @ kmat
 
 
-def _srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
-    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
-
-
 class _Problem:
     """The photos as tensors, and one differentiable evaluation of the scene against them."""
 
@@ -137,7 +134,7 @@ class _Problem:
         self.shape_model, self.descriptor, self.landmark_vertices = shape_model, descriptor, landmark_vertices
         self.renderer = Renderer.for_shape_model(shape_model)
         self.photo = torch.stack([torch.from_numpy(p.crop).permute(2, 0, 1).float() / 255 for p in photos])  # sRGB
-        self.photo_lin = _srgb_to_linear(self.photo)
+        self.photo_lin = srgb_to_linear(self.photo)
         self.skin = torch.stack([torch.from_numpy(p.skin) for p in photos])[:, None]
         self.target_lm = torch.stack([torch.from_numpy(p.landmarks) for p in photos])
         self.face_size = torch.tensor([float(np.ptp(p.landmarks, 0).max()) for p in photos])

@@ -18,7 +18,7 @@ import torch
 from .lights import Lights, sh_basis
 
 __all__ = ["safe_normalize", "light_vectors", "diffuse_irradiance", "specular_reflectance", "tangent_to_world",
-           "mesh_smoothing_operator", "subsurface_scatter", "linear_to_srgb"]
+           "mesh_smoothing_operator", "subsurface_scatter", "srgb_to_linear", "linear_to_srgb"]
 
 _EPS = 1e-12
 
@@ -138,6 +138,11 @@ def subsurface_scatter(irradiance: torch.Tensor, operator: torch.Tensor | tuple[
     blurred = torch.stack([level[steps[c]].view(v, b, 3)[..., c] for c in range(3)], -1)  # (V, B, 3)
     out = (1 - w) * e.view(v, b, 3) + w * blurred
     return out.permute(1, 0, 2)
+
+
+def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    """sRGB [0, 1] -> linear, with finite gradients at 0."""
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
 
 
 def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
