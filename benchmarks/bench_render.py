@@ -1,8 +1,8 @@
 """Renderer speed: render + backward of the shape model's head (12.4k vertices, 24.6k triangles) with
 512^2 maps, at 256^2 and 512^2 images, with each effect on and off. Prints a Markdown table.
 
-The head fills about 45 % of the image (as a fitting crop does). Timings are medians of 7 runs after 2
-warm-ups, torch on all cores. Issue target: all effects at 256^2 in <= 30 ms render + backward.
+The head fills about 45 % of the image (as a fitting crop does). Timings are medians of 15 runs after 2
+warm-ups, torch on all cores; all three maps need gradients (as in tuning). Issue target: all effects at 256^2 in <= 30 ms render + backward.
 """
 
 from __future__ import annotations
@@ -43,10 +43,9 @@ def scene(size: int):
 def time_case(renderer, out, maps, cam, lights, effects, backward: bool) -> float:
     v = out.vertices.detach().requires_grad_(backward)
     n = out.normals.detach().requires_grad_(backward)
-    alb = maps.albedo.detach().requires_grad_(backward)
-    m = ReflectanceMaps(alb, maps.specular, maps.normals)
+    m = ReflectanceMaps(*(x.detach().requires_grad_(backward) for x in (maps.albedo, maps.specular, maps.normals)))
     times = []
-    for k in range(9):
+    for k in range(17):
         t0 = time.perf_counter()
         o = renderer(v, n, out.tangents.detach(), m, cam, lights, effects)
         if backward:
@@ -68,7 +67,7 @@ def main() -> None:
             fwd = time_case(r, out, maps, cam, lights, eff, False)
             both = time_case(r, out, maps, cam, lights, eff, True)
             rows.append((size, name, fwd, both))
-    print(f"renderer, {torch.get_num_threads()} threads; ms (median of 7)\n")
+    print(f"renderer, {torch.get_num_threads()} threads; ms (median of 15)\n")
     print("| image | effects | forward | forward + backward |")
     print("|---|---|---:|---:|")
     for size, name, fwd, both in rows:

@@ -83,6 +83,7 @@ def test_effects_that_are_off_are_not_computed(models_root, monkeypatch):
         return wrapped
 
     monkeypatch.setattr(rmod, "specular_reflectance", counting("specular", rmod.specular_reflectance))
+    monkeypatch.setattr(rmod, "specular_pixels", counting("specular", rmod.specular_pixels))
     monkeypatch.setattr(rmod, "subsurface_scatter", counting("subsurface", rmod.subsurface_scatter))
     monkeypatch.setattr(rmod, "light_visibility", counting("shadows", rmod.light_visibility))
     lights = Lights.frontal(1)

@@ -13,13 +13,14 @@ import torch
 from torch import nn
 
 from ..reflectance.maps import ReflectanceMaps
+from ._kernels import specular_pixels
 from .antialias import antialias, face_adjacency
 from .camera import Camera, project
 from .effects import Effects
 from .lights import Lights
 from .raster import Fragments, barycentrics, interpolate, rasterize, scatter_image
-from .shading import (diffuse_irradiance, linear_to_srgb, mesh_smoothing_operator, specular_reflectance,
-                      subsurface_scatter, tangent_to_world)
+from .shading import (diffuse_irradiance, linear_to_srgb, mesh_smoothing_operator, safe_normalize,
+                      specular_reflectance, subsurface_scatter, tangent_to_world)
 from .shadows import light_visibility
 
 __all__ = ["RenderSettings", "RenderOutput", "Renderer"]
@@ -126,17 +127,22 @@ class Renderer(nn.Module):
         spec = None
         if effects.specular:
             p, nrm, tan = attrs[:, 4:7], attrs[:, 7:10], attrs[:, 10:14]
-            n_detail = tangent_to_world(tex[:, 4:7], tan, nrm)
             eye = -torch.einsum("bji,bj->bi", camera.rotation.to(dtype), camera.translation.to(dtype))  # centre = -R^T t
             shin = tex[:, 7:8] if shininess_map is not None else s.shininess
             pvis = None
             if vis is not None:  # per-vertex light visibility, interpolated: (N, L)
                 pvis = interpolate(vis.permute(0, 2, 1), self.faces, frags, bary)
-            if b == 1:  # one image: the pixels are one batch of points, no per-pixel copies of the lights
+            if vertices.device.type == "cpu" and used.position is None and used.count:  # fused loop; the branches below are its reference
+                shin_px = tex[:, 7] if shininess_map is not None else torch.tensor([s.shininess], dtype=dtype)
+                spec = specular_pixels(tex[:, 4:7], nrm, tan, p, eye, safe_normalize(used.direction.to(dtype)),
+                                       used.colour.to(dtype), shin_px, pvis, frags.index[:, 0])
+            elif b == 1:  # one image: the pixels are one batch of points, no per-pixel copies of the lights
+                n_detail = tangent_to_world(tex[:, 4:7], tan, nrm)
                 spec = specular_reflectance(n_detail[None], nrm[None], p[None], eye, used,
                                             shin if isinstance(shin, float) else shin[None],
                                             None if pvis is None else pvis.T[None])[0]
             else:  # each pixel its own batch element, with its image's lights
+                n_detail = tangent_to_world(tex[:, 4:7], tan, nrm)
                 bi = frags.index[:, 0]
                 per_pixel = Lights(used.ambient[bi], used.direction[bi], used.colour[bi],
                                    None if used.position is None else used.position[bi], None)
