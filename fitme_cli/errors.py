@@ -19,6 +19,9 @@ __all__ = [
     "ModelMissing",
     "ModelBuildError",
     "WrongLayout",
+    "AvatarInvalid",
+    "DifferentPeople",
+    "DeviceUnavailable",
 ]
 
 
@@ -90,3 +93,21 @@ class WrongLayout(FitmeError):
     """An image that is not a map in fitme's UV layout (e.g. a photo given to `fitme augment`)."""
 
     exit_code = 22
+
+
+class AvatarInvalid(FitmeError):
+    """A directory that is not a readable avatar (missing files, another schema, inconsistent params)."""
+
+    exit_code = 23
+
+
+class DifferentPeople(FitmeError):
+    """Photos given to one fit whose identity descriptors disagree."""
+
+    exit_code = 24
+
+
+class DeviceUnavailable(FitmeError):
+    """--device names a device this torch build or machine does not have."""
+
+    exit_code = 25

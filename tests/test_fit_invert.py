@@ -13,13 +13,13 @@ from fitme_cli.render.camera import project
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def _synthetic_photo(sm, size: int, maps: ReflectanceMaps, lights: Lights):
+def _synthetic_photo(sm, size: int, maps: ReflectanceMaps, lights: Lights, effects: Effects = Effects.none()):
     """A render of the mean face through a frontal camera, as a PhotoInput with exact landmarks.
     Returns (photo, camera, landmarks (468, 2))."""
     cam = Camera.looking_at_face(1, size, size, distance_mm=420, focal_35mm=50)
     shp = sm(*sm.zeros(1))
     with torch.no_grad():
-        photo = Renderer.for_shape_model(sm)(shp.vertices, shp.normals, shp.tangents, maps, cam, lights, Effects.none())
+        photo = Renderer.for_shape_model(sm)(shp.vertices, shp.normals, shp.tangents, maps, cam, lights, effects)
     crop = (photo.image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
     lm = project(shp.vertices[:, sm.landmarks], cam)[0, :, :2].numpy().astype(np.float32)
     i68 = lm[np.linspace(0, 467, 68).astype(int)]  # any 68 spread points suffice for the chip transform here
@@ -39,7 +39,7 @@ def test_inversion_keeps_the_landmarks_and_fits_the_light(models_root):
     with torch.no_grad():  # the "photo": the mean face, W average, under a brighter light than the start
         maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
     p, cam, lm = _synthetic_photo(sm, size, maps, bright)
-    s = InversionSettings(iterations=15, render_size=size, coarse_resolution=8, effects=Effects.none(),
+    s = InversionSettings(iterations=15, render_size=size, coarse_resolution=8, effects=Effects.none(), select_effects=False,
                           lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4))
     res = invert([p], G, sm, load_dlib_resnet(models_root), sm.landmarks, np.arange(10), s)
     h = res.history
@@ -67,7 +67,7 @@ def test_tuning_trains_only_the_middle_layers_and_lowers_its_loss(models_root):
         maps0 = decode_maps(G.synthesis(ws, noise_mode="const"), G.settings)
     from fitme_cli.fitting.invert import InversionResult
 
-    inv = InversionResult(ws, *sm.zeros(1), cam, lights, maps0, [])
+    inv = InversionResult(ws, *sm.zeros(1), cam, lights, maps0, [], Effects.none(), None, {})
     before = {k: v.clone() for k, v in G.state_dict().items()}
     res = tune([p], G, inv, sm, load_dlib_resnet(models_root), sm.landmarks, np.arange(10),
                torch.ones(32, 32, dtype=torch.bool), TuningSettings(iterations=12, lr=1e-2, effects=Effects.none()))
@@ -77,3 +77,29 @@ def test_tuning_trains_only_the_middle_layers_and_lowers_its_loss(models_root):
     assert all(any(f".{m.split('.')[0]}.{m.split('.')[1]}." in k for m in middle) for k in changed)
     assert res.history[-1]["photometric"] < res.history[0]["photometric"]
     assert all(np.isfinite(list(r.values())).all() for r in res.history)
+
+
+def test_effect_selection_runs_at_the_coarse_switch_and_user_overrides_win(models_root):
+    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+    from fitme_cli.shape.model import load_shape_model
+
+    torch.manual_seed(2)
+    sm = load_shape_model(models_root)
+    G = Generator(GanSettings(resolution=16, branch_resolution=16, channel_base=64, channel_max=16, z_dim=16, w_dim=16))
+    side = Lights(torch.full((1, 3), 0.3), torch.tensor([[[0.0, 0.0, 1.0], [-1.0, 0.0, 0.3]]]),
+                  torch.tensor([[[0.5] * 3, [0.9] * 3]]))
+    with torch.no_grad():
+        maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
+    p, _, _ = _synthetic_photo(sm, 96, maps, side, effects=Effects(specular=False, subsurface=False, multi_light=True))
+    s = InversionSettings(iterations=6, render_size=96, coarse_resolution=8, coarse_fraction=0.5,
+                          lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4), forced_effects=(("shadows", True),),
+                          selection_steps=15)
+    res = invert([p], G, sm, load_dlib_resnet(models_root), sm.landmarks, np.arange(10), s)
+    r = res.coarse_residuals
+    assert set(r) == {"base", "shadows", "multi_light", "sh_ambient"} and all(np.isfinite(list(r.values())))
+    assert r["multi_light"] < r["base"]  # a strong second light in the photo: a fitted fill light helps
+    assert res.choice is not None and res.effects == res.choice.effects
+    assert res.effects.shadows and "forced" in res.choice.reasons["shadows"]
+    assert res.effects.multi_light == (r["multi_light"] < 0.95 * r["base"])
+    assert res.lights.count == (2 if res.effects.multi_light else 1)
+    assert all(np.isfinite(list(h.values())).all() for h in res.history)

@@ -18,6 +18,7 @@ _COMMANDS = {  # name -> module under fitme_cli.cli, imported only when the comm
     "dataset": "dataset",
     "train": "train",
     "fit": "fit",
+    "tune": "tune",
 }
 
 

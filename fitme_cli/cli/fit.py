@@ -1,9 +1,7 @@
-"""``fitme fit``: photos of one person -> an avatar directory (first version: inversion + tuning at
-fixed settings; presets, the effect selector and the full avatar schema follow, see docs/fitting.md)."""
+"""``fitme fit``: photos of one person -> an avatar directory (docs/fitting.md, docs/avatar_format.md)."""
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -12,53 +10,63 @@ import click
 
 __all__ = ["command"]
 
-SCHEMA_VERSION = "0.1"
-
 
 @click.command("fit")
 @click.argument("photos", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path), help="Avatar directory to write.")
-@click.option("--iterations", default=200, show_default=True, type=click.IntRange(1, 10000), help="Inversion iterations.")
-@click.option("--tune-iterations", default=20, show_default=True, type=click.IntRange(0, 1000), help="Tuning iterations (0: no tuning).")
-@click.option("--render-size", default=256, show_default=True, type=click.Choice(["128", "256", "512"]), help="Fitting crop size.")
-@click.option("--effects", default="", help="Force effects on/off, e.g. '+shadows,-specular' (default: specular and subsurface).")
+@click.option("--preset", "preset_name", default="default", show_default=True, type=click.Choice(["fast", "default", "best"]),
+              help="Accuracy against time: fast ~15 s, default ~1 min, best a few minutes (one photo, 2 cores).")
+@click.option("--iterations", type=click.IntRange(1, 10000), help="Inversion iterations (default: the preset's).")
+@click.option("--tune-iterations", type=click.IntRange(0, 1000), help="Tuning iterations (default: the preset's).")
+@click.option("--no-tune", is_flag=True, help="Skip tuning the generator.")
+@click.option("--render-size", type=click.Choice(["128", "256", "384", "512"]), help="Fitting crop size (default: the preset's).")
+@click.option("--effects", default="", help="Force effects on/off, e.g. '+shadows,-specular' (others: chosen per scene).")
+@click.option("--device", default="cpu", show_default=True, help="torch device: cpu, cuda, cuda:1.")
 @click.option("--seed", default=0, show_default=True)
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
-@click.option("--force", is_flag=True, help="Replace an existing avatar directory's files.")
-def command(photos: tuple[Path, ...], out_dir: Path, iterations: int, tune_iterations: int, render_size: str,
-            effects: str, seed: int, threads: int | None, force: bool) -> None:
-    """Fit an avatar to PHOTO... (one person): shape, expression, reflectance maps, cameras and lights.
+@click.option("--force", is_flag=True, help="Replace an existing avatar directory; fit photos that look like different people.")
+def command(photos: tuple[Path, ...], out_dir: Path, preset_name: str, iterations: int | None, tune_iterations: int | None,
+            no_tune: bool, render_size: str | None, effects: str, device: str, seed: int, threads: int | None,
+            force: bool) -> None:
+    """Fit an avatar to PHOTO... (one person): shape, expressions, reflectance maps, cameras and lights.
 
-    Writes OUT/avatar.json (inputs and their hashes, settings, timings, final losses),
-    OUT/params.safetensors (W, p_s, p_e, cameras, lights), OUT/generator_tuned.safetensors (the tuned
-    layers), OUT/maps/{albedo,specular,normals}.{png,exr} and, per photo, OUT/NAME.fit.png (crop |
-    render | render over the crop).
+    Several photos share W and the identity shape; each has its own camera, lights and expression.
+    A photo that cannot be used (missing, not an image, no face) is reported and skipped.
+
+    Writes OUT/avatar.json, OUT/params.safetensors, OUT/generator_tuned.safetensors,
+    OUT/maps/avatar_{albedo,specular,normals}.{png,exr}, OUT/loss_curve.png and per photo
+    OUT/photos/NAME/{panel.png,mesh_camera.obj,landmarks68.json} (docs/avatar_format.md). The directory
+    appears complete or not at all.
 
     \b
-    Example:
+    Examples:
       fitme fit photo1.jpg photo2.jpg -o avatar/
+      fitme fit selfie.jpg -o avatar/ --preset fast
     """
     import dataclasses
     import hashlib
+    import shutil
 
     import numpy as np
     import torch
-    from tqdm import tqdm
 
-    from ..errors import OutputNotWritable
+    from ..errors import DeviceUnavailable, DifferentPeople, FitmeError, InputNotFound
+    from ..fitting.avatar import PhotoRecord, check_output_dir, publish_dir, staging_dir
     from ..fitting.invert import InversionSettings, TuningSettings, invert, prepare_photo, tune
+    from ..fitting.outputs import write_avatar
+    from ..fitting.presets import preset
     from ..fitting.skin_mask import photo_skin_mask
-    from ..io.atomic import atomic_write_bytes, atomic_write_image
     from ..io.images import load_image
     from ..perception.detect import DetectSettings, detect
     from ..perception.dlib_resnet import load_dlib_resnet
     from ..perception.registry import ensure_models
     from ..reflectance.gan.store import load_generator
-    from ..render import Effects, Renderer
     from ..render.effects import parse_effects
     from ..shape.facemesh_topology import read_facemesh_topology
     from ..shape.model import load_shape_model
     from ..shape.regions import region_masks
+    from .detect import output_names
+    from .progress import StageBar, peak_memory_mib
 
     if threads:
         torch.set_num_threads(threads)
@@ -66,101 +74,134 @@ def command(photos: tuple[Path, ...], out_dir: Path, iterations: int, tune_itera
         forced = parse_effects(effects)
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--effects") from None
-    if out_dir.exists() and not out_dir.is_dir():
-        raise OutputNotWritable("the avatar path exists and is not a directory", out_dir)
-    if (out_dir / "avatar.json").exists() and not force:
-        raise OutputNotWritable("the directory already holds an avatar; pass --force to replace it", out_dir)
-    if out_dir.resolve() in {p.resolve() for p in photos if p.exists()}:
-        raise OutputNotWritable("the avatar directory is an input", out_dir)
-    try:
-        (out_dir / "maps").mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise OutputNotWritable(f"cannot create the avatar directory: {e.strerror}", out_dir) from None
+    dev = _device(device, DeviceUnavailable)
+    check_output_dir(out_dir, list(photos), force)
+    pre = preset(preset_name)
+    iterations = iterations or pre.iterations
+    tune_iterations = 0 if no_tune else (pre.tune_iterations if tune_iterations is None else tune_iterations)
+    size = int(render_size or pre.render_size)
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    models = ensure_models(["blazeface_short", "blazeface_full", "facemesh", "dlib_resnet", "shape_model"])
+    models = ensure_models(["blazeface_short", "blazeface_full", "facemesh", "dlib_resnet", "facenet", "shape_model"])
     topo = read_facemesh_topology()
-    size = int(render_size)
-    prepared, records = [], []
-    for path in photos:
-        img = load_image(path)
-        face = detect(img.rgb, DetectSettings()).face  # NoFaceFound when there is none
+    prepared, records, descriptors, failures = [], [], [], []
+    names = output_names(list(photos), "")
+    for path, name in zip(photos, names):
+        try:
+            img = load_image(path)
+            face = detect(img.rgb, DetectSettings()).face  # NoFaceFound when there is none
+            digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        except FitmeError as e:
+            click.echo(f"fitme: skipped {path}: {e}", err=True)
+            failures.append(e)
+            continue
         lm = face.landmarks
         prepared.append(prepare_photo(img.rgb, lm.points[:, :2], lm.ibug68, img.focal_length_35mm, size, 1.6,
                                       lambda c, pts: photo_skin_mask(c, pts, topo.triangles, topo.contours)))
-        records.append({"path": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-                        "size": list(img.rgb.shape[1::-1]), "focal_length_35mm": img.focal_length_35mm})
+        records.append(PhotoRecord(str(path), digest, tuple(img.rgb.shape[1::-1]), img.focal_length_35mm, name))
+        descriptors.append(face.identity)
+    if not prepared:
+        raise failures[0] if len(failures) == 1 else InputNotFound(f"none of the {len(photos)} photos could be used")
+    distance = _max_identity_distance(descriptors)
+    if distance > 0.6:  # dlib's same-person threshold
+        msg = f"the photos look like different people (identity distance {distance:.2f} > 0.6)"
+        if not force:
+            raise DifferentPeople(msg + "; pass --force to fit them as one person")
+        click.echo(f"fitme: warning: {msg}; fitting anyway (--force)", err=True)
     timings["detect_s"] = time.perf_counter() - t0
 
-    G = load_generator(models)
-    sm = load_shape_model(models)
-    desc = load_dlib_resnet(models)
-    jaw = np.unique(topo.contours["face_oval"])
-    eff = dataclasses.replace(Effects(), **forced)
-    inv_s = InversionSettings(iterations=iterations, render_size=size, effects=eff, seed=seed)
-    bar = tqdm(total=iterations + tune_iterations, desc="invert", unit="it", file=sys.stderr, disable=None)
-
-    def progress(stage):
-        def cb(i, n, rec):
-            bar.set_description(stage)
-            bar.set_postfix({k: f"{v:.3g}" for k, v in rec.items() if k in ("total", "landmarks", "photometric", "identity")},
-                            refresh=False)
-            bar.update(1)
-        return cb
-
     t = time.perf_counter()
-    inv = invert(prepared, G, sm, desc, sm.landmarks, jaw, inv_s, progress=progress("invert"))
-    timings["invert_s"] = time.perf_counter() - t
-    maps, tuned, tune_hist = inv.maps, {}, []
-    if tune_iterations:
+    G = load_generator(models).to(dev)
+    sm = load_shape_model(models).to(dev)
+    desc = load_dlib_resnet(models).to(dev)
+    jaw = np.unique(topo.contours["face_oval"])
+    timings["load_s"] = time.perf_counter() - t
+    inv_s = InversionSettings(iterations=iterations, render_size=size, coarse_fraction=pre.coarse_fraction,
+                              coarse_resolution=pre.coarse_resolution, select_effects=pre.select_effects,
+                              forced_effects=tuple(forced.items()), seed=seed)
+    bar = StageBar(iterations + tune_iterations)
+    staging = None
+    try:
         t = time.perf_counter()
-        mapped = torch.from_numpy(region_masks(sm.region_uv.numpy().astype(np.uint8), G.settings.resolution)["mapped"])
-        tr = tune(prepared, G, inv, sm, desc, sm.landmarks, jaw, mapped, TuningSettings(iterations=tune_iterations, effects=eff),
-                  progress=progress("tune"))
-        maps, tuned, tune_hist = tr.maps, tr.layers, tr.history
-        timings["tune_s"] = time.perf_counter() - t
-    bar.close()
+        inv = invert(prepared, G, sm, desc, sm.landmarks, jaw, inv_s, progress=bar.callback("invert"), device=dev)
+        timings["invert_s"] = time.perf_counter() - t
+        maps, tuned, tune_hist = inv.maps, {}, []
+        if tune_iterations:
+            t = time.perf_counter()
+            mapped = torch.from_numpy(region_masks(sm.region_uv.cpu().numpy().astype(np.uint8), G.settings.resolution)["mapped"])
+            tr = tune(prepared, G, inv, sm, desc, sm.landmarks, jaw, mapped, TuningSettings(iterations=tune_iterations),
+                      progress=bar.callback("tune"), device=dev)
+            maps, tuned, tune_hist = tr.maps, tr.layers, tr.history
+            timings["tune_s"] = time.perf_counter() - t
+        bar.close()
+        t = time.perf_counter()
+        staging = staging_dir(out_dir)
+        meta = {"settings": {"preset": preset_name, "inversion": _jsonable(dataclasses.asdict(inv_s)),
+                             "tune_iterations": tune_iterations, "device": str(dev), "photos_skipped": len(failures)},
+                "effects": {"forced": forced},
+                "final_losses": {"inversion": inv.history[-1], "tuning": tune_hist[-1] if tune_hist else None},
+                "history": {"inversion": inv.history, "tuning": tune_hist}}
+        timings["write_s"] = 0.0
+        meta["timings"] = timings
+        quality = write_avatar(staging, records, prepared, inv, maps, tuned, sm, models, meta)
+        timings["write_s"] = time.perf_counter() - t
+        timings["total_s"] = time.perf_counter() - t0
+        timings["peak_memory_mib"] = peak_memory_mib()
+        _rewrite_timings(staging, timings)
+        publish_dir(staging, out_dir)
+        staging = None
+    finally:
+        bar.close()
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+    stages = ", ".join(f"{k[:-2]} {v:.1f}" for k, v in timings.items() if k.endswith("_s") and k != "total_s")
+    click.echo(f"avatar written to {out_dir} in {timings['total_s']:.1f} s ({stages}); "
+               f"peak memory {timings['peak_memory_mib']:.0f} MiB")
+    for rec, q in zip(records, quality):
+        click.echo(f"  {rec.name}: identity similarity {q.identity_similarity:.2f}, landmark error "
+                   f"{q.landmark_error_px:.1f} px ({q.landmark_error_pct:.1f} % of the face width)")
+    click.echo(f"  effects: {', '.join(inv.effects.on()) or 'none'}")
+    if inv.choice is not None:
+        for k, why in inv.choice.reasons.items():
+            click.echo(f"    {k}: {why}")
+    if failures:
+        sys.exit(failures[0].exit_code)  # as detect: the avatar is written, the exit code is the first failure's
 
-    from safetensors.torch import save_file
 
-    from ..io.atomic import publish_file
-    from ..reflectance.skin_data import SkinSample, write_sample
+def _device(name: str, error):
+    import torch
 
-    def save(tensors: dict, name: str) -> None:
-        tmp = out_dir / f".{name}.tmp"
-        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp))
-        publish_file(tmp, out_dir / name)
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise error(f"unknown device {name!r}; expected cpu, cuda or cuda:N") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise error("--device cuda was asked for, but this torch build or machine has no CUDA device")
+    if dev.type not in ("cpu", "cuda"):
+        raise error(f"device {name!r} is not supported; expected cpu or cuda")
+    return dev
 
-    cam = inv.cameras
-    save({"ws": inv.ws, "p_s": inv.p_s, "p_e": inv.p_e, "camera_focal": cam.focal, "camera_principal": cam.principal,
-          "camera_rotation": cam.rotation, "camera_translation": cam.translation, "light_ambient": inv.lights.ambient,
-          "light_direction": inv.lights.direction, "light_colour": inv.lights.colour}, "params.safetensors")
-    if tuned:
-        save(tuned, "generator_tuned.safetensors")
-    sample = SkinSample(maps.albedo[0].permute(1, 2, 0).numpy(), maps.specular[0, 0].numpy(),
-                        maps.normals[0].permute(1, 2, 0).numpy(), {})
-    for fmt in ("png", "exr"):
-        write_sample(out_dir / "maps", "avatar", sample, fmt)
-    renderer = Renderer.for_shape_model(sm)
-    with torch.no_grad():
-        shp = sm(inv.p_s.expand(len(prepared), -1), inv.p_e)
-        out = renderer(shp.vertices, shp.normals, shp.tangents, maps, cam, inv.lights, eff)
-    from .detect import output_names
 
-    for i, (p, name) in enumerate(zip(prepared, output_names(list(photos), ".fit.png"))):
-        ren = (out.image[i].permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
-        over = p.crop.copy()
-        m = out.mask[i, 0].numpy() > 0
-        over[m] = ren[m]
-        atomic_write_image(out_dir / name, np.concatenate([p.crop, ren, over], 1))
-    timings["total_s"] = time.perf_counter() - t0
-    report = {"schema": SCHEMA_VERSION, "inputs": records,
-              "settings": {"inversion": json.loads(json.dumps(dataclasses.asdict(inv_s))), "tune_iterations": tune_iterations},
-              "effects": {"chosen": eff.on(), "forced": forced},
-              "timings": {k: round(v, 2) for k, v in timings.items()},
-              "final_losses": {"inversion": inv.history[-1], "tuning": tune_hist[-1] if tune_hist else None},
-              "generator": {"resolution": G.settings.resolution}}
-    atomic_write_bytes(out_dir / "avatar.json", (json.dumps(report, indent=2) + "\n").encode())
-    click.echo(f"avatar written to {out_dir} in {timings['total_s']:.1f} s "
-               f"(detect {timings['detect_s']:.1f}, invert {timings['invert_s']:.1f}, tune {timings.get('tune_s', 0):.1f})")
+def _max_identity_distance(descriptors) -> float:
+    import numpy as np
+
+    d = [np.asarray(x, np.float64) for x in descriptors if x is not None]
+    return max((float(np.linalg.norm(a - b)) for i, a in enumerate(d) for b in d[i + 1:]), default=0.0)
+
+
+def _jsonable(x):
+    import json
+
+    return json.loads(json.dumps(x, default=str))
+
+
+def _rewrite_timings(staging: Path, timings: dict) -> None:
+    import json
+
+    from ..io.atomic import atomic_write_bytes
+
+    p = staging / "avatar.json"
+    rep = json.loads(p.read_text())
+    rep["timings"] = {k: round(v, 2) for k, v in timings.items()}
+    atomic_write_bytes(p, (json.dumps(rep, indent=1) + "\n").encode())

@@ -5,13 +5,16 @@ lights and expression.
 Then tuning (Sec. 3.4.2): W frozen, only the generator's 4 middle synthesis layers train, against the
 perceptual, photometric, flip and chromaticity losses.
 
-Status: both loops work (tests/test_fit_invert.py). Not yet: the effect selector's coarse-fit
-residuals, presets and speed, the avatar directory and the CLI (issue 6).
+The effect selector runs once, at the switch from the coarse to the fine phase: it measures the
+photometric residual of the coarse fit with the base effects and with each optional effect (a second
+light and an SH environment fitted for a few steps with everything else frozen; shadows as they are)
+and keeps an effect only where it lowers the residual by the selector's threshold
+(``render.effects.select_effects``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -20,6 +23,7 @@ import torch
 from ..reflectance.gan.networks import Generator, decode_maps
 from ..reflectance.maps import ReflectanceMaps
 from ..render import Camera, Effects, Lights, Renderer
+from ..render.effects import EffectChoice, SelectorSettings, select_effects
 from ..render.camera import focal_px_from_35mm, project
 from ..render.shading import srgb_to_linear
 from .losses import identity_loss, landmark_loss, perceptual_loss, photometric_loss, w_prior
@@ -42,7 +46,11 @@ class InversionSettings:
     jaw_weight: float = 0.3  # landmarks on the face outline slide along it: trust them less
     coarse_fraction: float = 0.4  # share of iterations with the synthesis stopped at coarse_resolution
     coarse_resolution: int = 64
-    effects: Effects = field(default_factory=Effects)
+    effects: Effects = field(default_factory=Effects)  # the effects when ``select_effects`` is off
+    select_effects: bool = True  # choose the effects from the photos and the coarse fit
+    forced_effects: tuple[tuple[str, bool], ...] = ()  # user overrides, (name, on) pairs; always win
+    selection_steps: int = 8  # Adam steps that fit a candidate second light or SH environment
+    selector: SelectorSettings = field(default_factory=SelectorSettings)
     seed: int = 0
 
 
@@ -54,7 +62,7 @@ class TuningSettings:
     # the paper's lambda_8..11: perceptual (LPIPS there, dlib activations here: rescaled by 1/25 as
     # lambda_4), photometric, flip, chromaticity
     lambdas: tuple[float, float, float, float] = (2.0 / 25, 0.5, 0.8, 0.35)
-    effects: Effects = field(default_factory=Effects)
+    effects: Effects | None = None  # None: the effects the inversion chose
 
 
 @dataclass(frozen=True)
@@ -83,6 +91,9 @@ class InversionResult:
     lights: Lights  # batch P
     maps: ReflectanceMaps  # (1, ., R, R) physical maps at the generator's resolution
     history: list[dict[str, float]]  # per iteration: total and each weighted loss (mean over photos)
+    effects: Effects  # the effects of the fine phase (and of the final render)
+    choice: EffectChoice | None  # the selector's decision and reasons; None when not selected
+    coarse_residuals: dict[str, float]  # photometric residual of the coarse fit per candidate effect
 
 
 @dataclass(frozen=True)
@@ -127,32 +138,40 @@ class _Problem:
     """The photos as tensors, and one differentiable evaluation of the scene against them."""
 
     def __init__(self, photos: list[PhotoInput], shape_model, descriptor, landmark_vertices: torch.Tensor,
-                 jaw: np.ndarray, jaw_weight: float, size: int):
+                 jaw: np.ndarray, jaw_weight: float, size: int, device: torch.device | str = "cpu"):
         from ..perception.face_chip import extract_chip_torch, face_chip_affine
 
-        self.n, self.size = len(photos), size
+        dev = torch.device(device)
+        self.n, self.size, self.device = len(photos), size, dev
         self.shape_model, self.descriptor, self.landmark_vertices = shape_model, descriptor, landmark_vertices
-        self.renderer = Renderer.for_shape_model(shape_model)
-        self.photo = torch.stack([torch.from_numpy(p.crop).permute(2, 0, 1).float() / 255 for p in photos])  # sRGB
+        self.renderer = Renderer.for_shape_model(shape_model).to(dev)
+        self.photo = torch.stack([torch.from_numpy(p.crop).permute(2, 0, 1).float() / 255 for p in photos]).to(dev)  # sRGB
         self.photo_lin = srgb_to_linear(self.photo)
-        self.skin = torch.stack([torch.from_numpy(p.skin) for p in photos])[:, None]
-        self.target_lm = torch.stack([torch.from_numpy(p.landmarks) for p in photos])
-        self.face_size = torch.tensor([float(np.ptp(p.landmarks, 0).max()) for p in photos])
-        self.lm_w = torch.ones(468)
-        self.lm_w[torch.as_tensor(jaw)] = jaw_weight
-        self.chip_affine = torch.stack([torch.from_numpy(face_chip_affine(p.ibug68.astype(np.float64))).float() for p in photos])
+        self.skin = torch.stack([torch.from_numpy(p.skin) for p in photos])[:, None].to(dev)
+        self.target_lm = torch.stack([torch.from_numpy(p.landmarks) for p in photos]).to(dev)
+        self.face_size = torch.tensor([float(np.ptp(p.landmarks, 0).max()) for p in photos], device=dev)
+        self.lm_w = torch.ones(468, device=dev)
+        self.lm_w[torch.as_tensor(jaw, device=dev)] = jaw_weight
+        self.chip_affine = torch.stack([torch.from_numpy(face_chip_affine(p.ibug68.astype(np.float64))).float()
+                                        for p in photos]).to(dev)
         self._chip = extract_chip_torch
         with torch.no_grad():
             self.photo_feats = descriptor.features(extract_chip_torch(self.photo, self.chip_affine))
         mean_lm = shape_model.mean[landmark_vertices].detach().cpu().numpy()
         cams = [initial_camera(p.landmarks, mean_lm, size, size, p.focal_px, principal=p.principal) for p in photos]
-        self.rot0 = torch.cat([c.rotation for c in cams])
-        self.focal = torch.cat([c.focal for c in cams])
-        self.principal = torch.cat([c.principal for c in cams])
-        self.trans0 = torch.cat([c.translation for c in cams])
+        self.rot0 = torch.cat([c.rotation for c in cams]).to(dev)
+        self.focal = torch.cat([c.focal for c in cams]).to(dev)
+        self.principal = torch.cat([c.principal for c in cams]).to(dev)
+        self.trans0 = torch.cat([c.translation for c in cams]).to(dev)
 
     def camera(self, aa: torch.Tensor, trans: torch.Tensor) -> Camera:
         return Camera(self.focal, self.principal, _rodrigues(aa) @ self.rot0, trans, self.size, self.size)
+
+    def residual(self, maps: ReflectanceMaps, p_s, p_e, cam: Camera, lights: Lights, effects: Effects) -> torch.Tensor:
+        """(P,) photometric residual of one render (the effect selector's measure)."""
+        shp = self.shape_model(p_s.expand(self.n, -1), p_e)
+        out = self.renderer(shp.vertices, shp.normals, shp.tangents, maps, cam, lights, effects, background=self.photo_lin)
+        return photometric_loss(out.image, self.photo, self.skin * out.mask)
 
     def evaluate(self, maps: ReflectanceMaps, p_s, p_e, cam: Camera, lights: Lights, effects: Effects,
                  with_landmarks: bool = True, with_identity: bool = True) -> dict[str, torch.Tensor]:
@@ -170,23 +189,47 @@ class _Problem:
         return terms
 
 
+def _base_effects(s: InversionSettings) -> Effects:
+    forced = dict(s.forced_effects)
+    if not s.select_effects:
+        return replace(s.effects, **forced)
+    base = replace(s.effects, multi_light=False, sh_ambient=False, shadows=False)
+    return replace(base, **{k: v for k, v in forced.items() if k in ("specular", "subsurface")})
+
+
+def _fit_candidate(pb: _Problem, maps, p_s, p_e, cam, make_lights, params, effects: Effects, steps: int) -> float:
+    """Fit ``params`` (lights only) for a few steps with the rest frozen; the residual after."""
+    opt = torch.optim.Adam(params, lr=0.05)
+    for _ in range(steps):
+        loss = pb.residual(maps, p_s, p_e, cam, make_lights(), effects).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        return float(pb.residual(maps, p_s, p_e, cam, make_lights(), effects).mean())
+
+
 def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, landmark_vertices: torch.Tensor,
-           jaw: np.ndarray, s: InversionSettings = InversionSettings(), progress=None) -> InversionResult:
+           jaw: np.ndarray, s: InversionSettings = InversionSettings(), progress=None,
+           device: torch.device | str = "cpu") -> InversionResult:
     """Fit the photos of one person. ``descriptor``: the dlib ResNet torch twin (identity and perceptual
     losses); ``landmark_vertices``: (468,) mesh vertex of each FaceMesh landmark; ``jaw``: landmark
-    indices on the face outline. ``progress(i, total, losses)`` is called every iteration."""
+    indices on the face outline. ``progress(i, total, losses)`` is called every iteration. G, the shape
+    model and the descriptor must already be on ``device``."""
     torch.manual_seed(s.seed)
-    pb = _Problem(photos, shape_model, descriptor, landmark_vertices, jaw, s.jaw_weight, s.render_size)
+    dev = torch.device(device)
+    pb = _Problem(photos, shape_model, descriptor, landmark_vertices, jaw, s.jaw_weight, s.render_size, dev)
     n = pb.n
     ws = G.w_avg.detach().clone().view(1, 1, -1).repeat(1, G.settings.num_ws, 1).requires_grad_(True)
-    p_s = torch.zeros(1, shape_model.n_identity, requires_grad=True)
-    p_e = torch.zeros(n, shape_model.n_expressions, requires_grad=True)
-    aa = torch.zeros(n, 3, requires_grad=True)
+    p_s = torch.zeros(1, shape_model.n_identity, requires_grad=True, device=dev)
+    p_e = torch.zeros(n, shape_model.n_expressions, requires_grad=True, device=dev)
+    aa = torch.zeros(n, 3, requires_grad=True, device=dev)
     trans = pb.trans0.clone().requires_grad_(True)
     eye_dir = torch.einsum("pji,pj->pi", pb.rot0, -pb.trans0)  # camera centre in world: a frontal key light
     light_dir = torch.nn.functional.normalize(eye_dir, dim=-1).clone().requires_grad_(True)
-    ambient = torch.full((n, 3), 0.5, requires_grad=True)
-    colour = torch.full((n, 3), 0.5, requires_grad=True)
+    ambient = torch.full((n, 3), 0.5, requires_grad=True, device=dev)
+    colour = torch.full((n, 3), 0.5, requires_grad=True, device=dev)
+    extra: dict[str, torch.Tensor] = {}  # the selected second light ("dir2", "colour2") and SH environment ("sh")
     params = [ws, p_s, p_e, aa, light_dir, ambient, colour]
     # translation is in mm: the paper's lr (for unit-scale parameters) would move it 0.01 mm a step
     opt = torch.optim.Adam([{"params": params}, {"params": [trans], "lr": s.lr * 100}], lr=s.lr)
@@ -194,14 +237,63 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     history: list[dict[str, float]] = []
     n_coarse = int(s.coarse_fraction * s.iterations)
     r_full = G.settings.resolution
+    effects = _base_effects(s)
+    choice, residuals = None, {}
+    select_at = max(1, n_coarse) if s.select_effects and s.iterations > 1 else -1
 
-    def lights_now():
-        return Lights(ambient.clamp(min=0), light_dir[:, None], colour.clamp(min=0)[:, None])
+    def lights_now(d2=None, c2=None, sh=None):
+        d2, c2, sh = d2 if d2 is not None else extra.get("dir2"), c2 if c2 is not None else extra.get("colour2"), sh if sh is not None else extra.get("sh")
+        dirs, cols = light_dir[:, None], colour.clamp(min=0)[:, None]
+        if d2 is not None:
+            dirs = torch.cat([dirs, torch.nn.functional.normalize(d2, dim=-1)[:, None]], 1)
+            cols = torch.cat([cols, c2.clamp(min=0)[:, None]], 1)
+        return Lights(ambient.clamp(min=0), dirs, cols, sh=sh)
+
+    def select(maps):
+        nonlocal choice, residuals, effects
+        frozen = [t.detach() for t in (p_s, p_e)]
+        cam = pb.camera(aa.detach(), trans.detach())
+        mp = ReflectanceMaps(*(t.detach() for t in (maps.albedo, maps.specular, maps.normals)))
+        with torch.no_grad():
+            residuals = {"base": float(pb.residual(mp, *frozen, cam, lights_now(), effects).mean()),
+                         "shadows": float(pb.residual(mp, *frozen, cam, lights_now(), replace(effects, shadows=True)).mean())}
+            key = light_dir.detach()
+        # a second light from the camera's left or right, 56 degrees off the key light: start from the better side
+        right = pb.rot0[:, 0, :]  # the camera's x axis in the world frame
+        c2 = torch.full((n, 3), 0.3, device=dev)
+        with torch.no_grad():
+            sides = [torch.nn.functional.normalize(key + k * 1.5 * right, dim=-1) for k in (-1.0, 1.0)]
+            r_side = [float(pb.residual(mp, *frozen, cam, lights_now(d2=d, c2=c2), replace(effects, multi_light=True)).mean())
+                      for d in sides]
+        d2 = sides[int(np.argmin(r_side))].clone().requires_grad_(True)
+        c2 = c2.requires_grad_(True)
+        residuals["multi_light"] = _fit_candidate(pb, mp, *frozen, cam, lambda: lights_now(d2=d2, c2=c2), [d2, c2],
+                                                  replace(effects, multi_light=True), s.selection_steps)
+        sh0 = torch.zeros(n, 9, 3, device=dev)
+        sh0[:, 0] = ambient.detach() * 2 * float(np.sqrt(np.pi))  # the constant ambient as an environment
+        sh = sh0.clone().requires_grad_(True)
+        residuals["sh_ambient"] = _fit_candidate(pb, mp, *frozen, cam, lambda: lights_now(sh=sh), [sh],
+                                                 replace(effects, sh_ambient=True), s.selection_steps)
+        face_px = float(np.median([np.ptp(p.landmarks[:, 0]) * abs(p.to_photo[0, 0]) for p in photos]))
+        skin = np.concatenate([p.crop[p.skin > 0.5] for p in photos]).astype(np.float64) / 255
+        choice = select_effects(face_px, skin, residuals, dict(s.forced_effects), s.selector)
+        effects = choice.effects
+        new = []
+        if effects.multi_light:
+            extra["dir2"], extra["colour2"] = d2.detach().clone().requires_grad_(True), c2.detach().clone().requires_grad_(True)
+            new += [extra["dir2"], extra["colour2"]]
+        if effects.sh_ambient:
+            extra["sh"] = sh.detach().clone().requires_grad_(True)
+            new.append(extra["sh"])
+        if new:
+            opt.add_param_group({"params": new, "lr": s.lr})
 
     for it in range(s.iterations):
         res = s.coarse_resolution if it < n_coarse and s.coarse_resolution < r_full else None
         maps = decode_maps(G.synthesis(ws, noise_mode="const", max_resolution=res), G.settings)
-        terms = pb.evaluate(maps, p_s, p_e, pb.camera(aa, trans), lights_now(), s.effects)
+        if it == select_at:
+            select(maps)
+        terms = pb.evaluate(maps, p_s, p_e, pb.camera(aa, trans), lights_now(), effects)
         terms["w"] = w_prior(ws, G.w_avg).expand(n)
         terms["shape"] = shape_model.identity_prior(p_s).expand(n)
         terms["expression"] = shape_model.expression_prior(p_e)
@@ -221,19 +313,21 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         cam = pb.camera(aa, trans)
         lights = lights_now()
     cam = Camera(cam.focal.detach(), cam.principal.detach(), cam.rotation.detach(), cam.translation.detach(), pb.size, pb.size)
-    lights = Lights(lights.ambient.detach(), lights.direction.detach(), lights.colour.detach())
-    return InversionResult(ws.detach(), p_s.detach(), p_e.detach(), cam, lights, maps, history)
+    lights = Lights(lights.ambient.detach(), lights.direction.detach(), lights.colour.detach(),
+                    sh=None if lights.sh is None else lights.sh.detach())
+    return InversionResult(ws.detach(), p_s.detach(), p_e.detach(), cam, lights, maps, history, effects, choice, residuals)
 
 
 def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_model, descriptor,
          landmark_vertices: torch.Tensor, jaw: np.ndarray, mapped: torch.Tensor,
-         s: TuningSettings = TuningSettings(), render_size: int | None = None, progress=None) -> TuningResult:
+         s: TuningSettings = TuningSettings(), render_size: int | None = None, progress=None,
+         device: torch.device | str = "cpu") -> TuningResult:
     """Train the generator's middle layers with W (and shape, cameras, lights) frozen at the inversion's
     values. ``mapped``: (R, R) bool UV texels on the mesh (for the flip and chromaticity losses). G is
     modified in place (its tuned layers); the result also carries their new values."""
     from .losses import chromaticity_loss, flip_loss
 
-    pb = _Problem(photos, shape_model, descriptor, landmark_vertices, jaw, 1.0, render_size or inv.cameras.width)
+    pb = _Problem(photos, shape_model, descriptor, landmark_vertices, jaw, 1.0, render_size or inv.cameras.width, device)
     middle = G.synthesis.middle_layers(s.layers)
     params = [p for name in middle for p in G.synthesis.layer_parameters(name)]
     G.requires_grad_(False)
@@ -245,10 +339,10 @@ def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_mod
     history: list[dict[str, float]] = []
     for it in range(s.iterations):
         maps = decode_maps(G.synthesis(inv.ws, noise_mode="const"), G.settings)
-        terms = pb.evaluate(maps, inv.p_s, inv.p_e, inv.cameras, inv.lights, s.effects, with_landmarks=False,
+        terms = pb.evaluate(maps, inv.p_s, inv.p_e, inv.cameras, inv.lights, s.effects or inv.effects, with_landmarks=False,
                             with_identity=False)
-        terms["flip"] = flip_loss(maps.albedo, mapped).expand(pb.n)
-        terms["chromaticity"] = chromaticity_loss(maps.albedo, reference, mapped).expand(pb.n)
+        terms["flip"] = flip_loss(maps.albedo, mapped.to(pb.device)).expand(pb.n)
+        terms["chromaticity"] = chromaticity_loss(maps.albedo, reference, mapped.to(pb.device)).expand(pb.n)
         weighted = {k: lam[k] * v for k, v in terms.items()}
         total = sum(t.mean() for t in weighted.values())
         opt.zero_grad(set_to_none=True)

@@ -1,0 +1,34 @@
+"""Fit presets: what accuracy costs in time. Figures measured on this 2-core CPU are in docs/fitting.md."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["FitPreset", "PRESETS", "preset"]
+
+
+@dataclass(frozen=True)
+class FitPreset:
+    name: str
+    iterations: int  # inversion iterations
+    tune_iterations: int  # 0: no tuning
+    render_size: int  # fitting crop side in pixels
+    coarse_fraction: float  # share of the inversion with the synthesis stopped at coarse_resolution
+    coarse_resolution: int
+    select_effects: bool  # run the effect selector (costs ~3 x selection_steps renders)
+
+
+PRESETS = {
+    # the paper's 200 + 20 iterations (main text) at 256^2 (it renders 512^2 on a GPU)
+    "default": FitPreset("default", 200, 20, 256, 0.4, 64, True),
+    # a quarter of the iterations at 128^2, mostly at coarse maps, no tuning: a preview in ~15 s
+    "fast": FitPreset("fast", 60, 0, 128, 0.6, 64, False),
+    # the supplementary's 250 + 30, rendered at the paper's 512^2
+    "best": FitPreset("best", 250, 30, 512, 0.3, 64, True),
+}
+
+
+def preset(name: str) -> FitPreset:
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")
+    return PRESETS[name]
