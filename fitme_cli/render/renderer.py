@@ -33,7 +33,7 @@ class RenderSettings:
     sss_weights: tuple[float, float, float] = (0.7, 0.4, 0.2)  # share of the blurred irradiance per channel
     antialias: bool = True
     cull_backfaces: bool = True
-    shadow_resolution: int = 256
+    shadow_resolution: int = 128  # shadow-map side: 1.6 mm texels over a head; 256 costs 4x (15 vs 4 ms for 3 lights)
     components: bool = False  # also return the diffuse and specular images (diagnostics; costs ~15 %)
 
 
