@@ -351,3 +351,23 @@ def test_quality_metrics(dataset_dir, models_root):
     assert frechet_distance(a, a + 2.0) == pytest.approx(12.0, rel=1e-6)  # |mean shift|^2 = 3 * 4
     walk = torch.linspace(0, 1, 9).view(9, 1, 1, 1).expand(9, 3, 4, 4)
     assert interpolation_smoothness(walk) == pytest.approx(1.0)
+
+
+def test_w_prior_is_about_one_for_samples_and_large_off_the_manifold():
+    from fitme_cli.reflectance.gan.latent_prior import fit_w_prior, w_to_p
+
+    torch.manual_seed(0)
+    G = Generator(GanSettings(resolution=16, branch_resolution=16, channel_base=64, channel_max=16, z_dim=16, w_dim=16))
+    prior = fit_w_prior(G.mapping, 16, n=4000)
+    with torch.no_grad():
+        w = G.mapping(torch.randn(400, 16, generator=torch.Generator().manual_seed(9)))
+    d = prior.distance(w[:, None])
+    assert 0.7 < float(d.mean()) < 1.3  # held-out samples: typical
+    off = w + 3 * w.std(0) * torch.randn_like(w)  # a step the mapping does not produce
+    assert float(prior.distance(off[:, None]).mean()) > 5 * float(d.mean())
+    # w_to_p inverts the last leaky ReLU exactly
+    y = torch.randn(100, 16)
+    assert torch.allclose(w_to_p(torch.nn.functional.leaky_relu(y, 0.2) * 2**0.5), y, atol=1e-6)
+    ws = w[:3, None].repeat(1, 4, 1).requires_grad_()
+    prior.distance(ws).sum().backward()
+    assert torch.isfinite(ws.grad).all() and ws.grad.abs().sum() > 0

@@ -46,6 +46,12 @@ class InversionSettings:
     jaw_weight: float = 0.3  # landmarks on the face outline slide along it: trust them less
     coarse_fraction: float = 0.4  # share of iterations with the synthesis stopped at coarse_resolution
     coarse_resolution: int = 64
+    # the paper optimises W, one w for every layer; W+ (a w per layer) fits the photo more closely but
+    # leaves the generator's distribution: noisy, striped albedo with the light baked in (paper Fig. 9d)
+    w_plus: bool = False
+    # L_W: "pnorm", the whitened distance in the mapping's pre-activation space (reflectance/gan/
+    # latent_prior.py; ~1 for a typical sample), or "paper", the mean squared distance to w_avg
+    w_prior: str = "pnorm"
     effects: Effects = field(default_factory=Effects)  # the effects when ``select_effects`` is off
     select_effects: bool = True  # choose the effects from the photos and the coarse fit
     forced_effects: tuple[tuple[str, bool], ...] = ()  # user overrides, (name, on) pairs; always win
@@ -220,7 +226,11 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     dev = torch.device(device)
     pb = _Problem(photos, shape_model, descriptor, landmark_vertices, jaw, s.jaw_weight, s.render_size, dev)
     n = pb.n
-    ws = G.w_avg.detach().clone().view(1, 1, -1).repeat(1, G.settings.num_ws, 1).requires_grad_(True)
+    w0 = G.w_avg.detach().clone().view(1, 1, -1)
+    w_var = (w0.repeat(1, G.settings.num_ws, 1) if s.w_plus else w0).requires_grad_(True)
+
+    def all_ws():
+        return w_var if s.w_plus else w_var.expand(1, G.settings.num_ws, -1)
     p_s = torch.zeros(1, shape_model.n_identity, requires_grad=True, device=dev)
     p_e = torch.zeros(n, shape_model.n_expressions, requires_grad=True, device=dev)
     aa = torch.zeros(n, 3, requires_grad=True, device=dev)
@@ -230,13 +240,25 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     ambient = torch.full((n, 3), 0.5, requires_grad=True, device=dev)
     colour = torch.full((n, 3), 0.5, requires_grad=True, device=dev)
     extra: dict[str, torch.Tensor] = {}  # the selected second light ("dir2", "colour2") and SH environment ("sh")
-    params = [ws, p_s, p_e, aa, light_dir, ambient, colour]
+    params = [w_var, p_s, p_e, aa, light_dir, ambient, colour]
     # translation is in mm: the paper's lr (for unit-scale parameters) would move it 0.01 mm a step
     opt = torch.optim.Adam([{"params": params}, {"params": [trans], "lr": s.lr * 100}], lr=s.lr)
     lam = dict(zip(("landmarks", "photometric", "identity", "perceptual", "w", "shape", "expression"), s.lambdas))
     history: list[dict[str, float]] = []
     n_coarse = int(s.coarse_fraction * s.iterations)
     r_full = G.settings.resolution
+    if s.w_prior == "pnorm":
+        from ..reflectance.gan.latent_prior import fit_w_prior
+
+        prior = fit_w_prior(G.mapping, G.settings.z_dim)
+
+        def w_loss(ws):
+            return prior.distance(ws)
+    elif s.w_prior == "paper":
+        def w_loss(ws):
+            return w_prior(ws, G.w_avg)
+    else:
+        raise ValueError(f"w_prior must be 'pnorm' or 'paper', got {s.w_prior!r}")
     effects = _base_effects(s)
     choice, residuals = None, {}
     select_at = max(1, n_coarse) if s.select_effects and s.iterations > 1 else -1
@@ -290,11 +312,12 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
 
     for it in range(s.iterations):
         res = s.coarse_resolution if it < n_coarse and s.coarse_resolution < r_full else None
+        ws = all_ws()
         maps = decode_maps(G.synthesis(ws, noise_mode="const", max_resolution=res), G.settings)
         if it == select_at:
             select(maps)
         terms = pb.evaluate(maps, p_s, p_e, pb.camera(aa, trans), lights_now(), effects)
-        terms["w"] = w_prior(ws, G.w_avg).expand(n)
+        terms["w"] = w_loss(ws).expand(n)
         terms["shape"] = shape_model.identity_prior(p_s).expand(n)
         terms["expression"] = shape_model.expression_prior(p_e)
         weighted = {k: lam[k] * v for k, v in terms.items()}
@@ -309,6 +332,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         if progress is not None:
             progress(it, s.iterations, rec)
     with torch.no_grad():
+        ws = all_ws().contiguous()
         maps = decode_maps(G.synthesis(ws, noise_mode="const"), G.settings)
         cam = pb.camera(aa, trans)
         lights = lights_now()
