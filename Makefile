@@ -29,7 +29,7 @@ demo: setup
 	$(BIN)/python examples/sample_photos.py $(DEMO_DIR)
 	$(BIN)/fitme detect $(DEMO_DIR)/astronaut.jpg --overlay $(DEMO_DIR) -o $(DEMO_DIR)/detect.json
 	$(BIN)/fitme fit $(DEMO_DIR)/astronaut.jpg -o $(DEMO_DIR)/avatar --force
-	@echo "demo: overlay in $(DEMO_DIR)/astronaut.overlay.png, avatar in $(DEMO_DIR)/avatar/ (see astronaut.fit.png)"
+	@echo "demo: overlay in $(DEMO_DIR)/astronaut.overlay.png, avatar in $(DEMO_DIR)/avatar/ (see photos/astronaut/panel.png)"
 
 bench: setup
 	$(BIN)/python benchmarks/bench_perception.py
