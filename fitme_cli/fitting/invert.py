@@ -195,6 +195,13 @@ class _Problem:
         return terms
 
 
+def _check_finite(total: torch.Tensor, terms: dict[str, torch.Tensor], it: int) -> None:
+    """Stop at the first non-finite loss, naming the terms: Adam would otherwise spread NaN everywhere."""
+    if not torch.isfinite(total):
+        bad = {k: float(v.detach().mean()) for k, v in terms.items()}
+        raise FloatingPointError(f"non-finite loss at iteration {it}: {bad}")
+
+
 def _base_effects(s: InversionSettings) -> Effects:
     forced = dict(s.forced_effects)
     if not s.select_effects:
@@ -322,6 +329,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         terms["expression"] = shape_model.expression_prior(p_e)
         weighted = {k: lam[k] * v for k, v in terms.items()}
         total = sum(t.mean() for t in weighted.values())
+        _check_finite(total, weighted, it)
         opt.zero_grad(set_to_none=True)
         total.backward()
         opt.step()
@@ -369,6 +377,7 @@ def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_mod
         terms["chromaticity"] = chromaticity_loss(maps.albedo, reference, mapped.to(pb.device)).expand(pb.n)
         weighted = {k: lam[k] * v for k, v in terms.items()}
         total = sum(t.mean() for t in weighted.values())
+        _check_finite(total, weighted, it)
         opt.zero_grad(set_to_none=True)
         total.backward()
         opt.step()
