@@ -35,6 +35,7 @@ bench: setup
 	$(BIN)/python benchmarks/bench_perception.py
 	$(BIN)/python benchmarks/bench_augment.py
 	$(BIN)/python benchmarks/bench_render.py
+	$(BIN)/python benchmarks/bench_fit.py --presets fast,default --views 1,3
 
 clean-models:
 	rm -f models/blazeface_short.* models/blazeface_full.* models/facemesh.* models/dlib_resnet.* models/facenet.* models/shape_model.*

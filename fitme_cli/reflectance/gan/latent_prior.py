@@ -46,8 +46,9 @@ class WPrior:
 
 
 @torch.no_grad()
-def fit_w_prior(mapping, z_dim: int, n: int = 20000, seed: int = 0, eps: float = 1e-3) -> WPrior:
-    """Statistics of P = w_to_p(mapping(z)) over n samples z ~ N(0, I); ~0.3 s for 20k on 2 cores.
+def fit_w_prior(mapping, z_dim: int, n: int = 8192, seed: int = 0, eps: float = 1e-3) -> WPrior:
+    """Statistics of P = w_to_p(mapping(z)) over n samples z ~ N(0, I) (16 per dimension of a 512-d
+    W; 0.6 s on one thread, 20k took 1.7 s for no visible change).
     ``eps`` (relative to the mean variance) keeps near-degenerate directions from exploding."""
     g = torch.Generator().manual_seed(seed)
     dev = next(mapping.parameters()).device
