@@ -90,8 +90,18 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         if not ckpt.is_file():
             raise InputNotFound("nothing to resume: no checkpoint.safetensors in the run directory", run_dir)
         state = load_checkpoint(ckpt)
-        # only the run length and snapshot cadence may change on resume; the rest is the run's own
-        state.train = dataclasses.replace(state.train, **{k: v for k, v in cfg["train"].items() if k in ("kimg", "snapshot_kimg")})
+        # the run length, snapshot cadence and augmentation may change on resume (turning ADA on when D
+        # starts to overfit is the usual move); the rest is the run's own, and saying otherwise is an error
+        changeable = ("kimg", "snapshot_kimg", "ada")
+        fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
+                 and flags[k] != getattr(state.train, k)]
+        if fixed:
+            raise click.BadParameter(f"{', '.join('--' + k.replace('_', '-') for k in fixed)} cannot change on --resume "
+                                     f"(the run has {', '.join(f'{k}={getattr(state.train, k)}' for k in fixed)})")
+        new = {k: v for k, v in cfg["train"].items() if k in ("kimg", "snapshot_kimg")}
+        if flags.get("ada") is not None:
+            new["ada"] = flags["ada"]
+        state.train = dataclasses.replace(state.train, **new)
         gan_settings = state.gan
         click.echo(f"resuming at {state.nimg / 1000:.2f} kimg", err=True)
     else:

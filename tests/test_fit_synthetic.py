@@ -1,0 +1,324 @@
+"""Fit accuracy against ground truth: the metrics (fitting/metrics.py) on known values, the synthetic
+subject (fitting/synthetic.py), and recovery tests that fit synthetic photos with ``invert`` as
+``fitme fit`` does (detect -> prepare_photo -> invert) and score the result against the truth."""
+
+import math
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from fitme_cli.fitting.metrics import (albedo_error, face_uv_mask, face_vertex_mask, fit_landmarks_px, landmark_error_px,
+                                       linear_rgb_to_lab, normal_angular_error_deg, point_to_mesh_distance,
+                                       rigid_alignment, shape_error_mm)
+from fitme_cli.fitting.synthetic import SyntheticSettings, make_subject, view_yaws
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def models(one_thread):
+    """(generator, shape model, dlib descriptor, renderer, FaceMesh topology), loaded once."""
+    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+    from fitme_cli.perception.registry import ensure_models
+    from fitme_cli.reflectance.gan.store import load_generator
+    from fitme_cli.render import Renderer
+    from fitme_cli.shape.facemesh_topology import read_facemesh_topology
+    from fitme_cli.shape.model import load_shape_model
+
+    root = ensure_models(["blazeface_short", "blazeface_full", "facemesh", "dlib_resnet", "shape_model"])
+    sm = load_shape_model(root)
+    return load_generator(root), sm, load_dlib_resnet(root), Renderer.for_shape_model(sm), read_facemesh_topology()
+
+
+def _rot(axis: str, deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]), "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+            "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
+
+
+# --- metrics on known values -------------------------------------------------------------------------
+
+
+def test_landmark_error_known_values_and_bad_shapes():
+    a = np.random.default_rng(0).uniform(0, 100, (2, 68, 2))
+    assert landmark_error_px(a, a) == 0.0
+    assert landmark_error_px(a + np.array([3.0, 4.0]), a) == pytest.approx(5.0)
+    assert landmark_error_px(torch.from_numpy(a[0]), a[0] - np.array([0.0, 2.0])) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match=r"expected target of shape \(2, 68, 2\).*got \(68, 2\)"):
+        landmark_error_px(a, a[0])
+    with pytest.raises(ValueError, match="expected pred of shape"):
+        landmark_error_px(np.zeros((68, 3)), np.zeros((68, 3)))
+
+
+def test_shape_error_is_zero_after_aligning_a_moved_mesh(models):
+    _, sm, _, _, _ = models
+    v = sm.mean.numpy().astype(np.float64)
+    tri = sm.triangles.numpy()
+    face = face_vertex_mask(sm)
+    assert shape_error_mm(v, v, tri, face).mean_mm < 1e-9
+    r = _rot("y", 20) @ _rot("x", -10) @ _rot("z", 5)
+    moved = v @ r.T + np.array([12.0, -30.0, 250.0])
+    err = shape_error_mm(moved, v, tri, face)
+    assert err.mean_mm < 1e-6 and err.n_points == int(face.sum())
+    np.testing.assert_allclose(err.rotation, r.T, atol=1e-9)  # the inverse motion
+    assert shape_error_mm(moved, v, tri, face, alignment="none").mean_mm > 50
+    # a scaled copy: the similarity alignment removes the scale, the rigid one cannot
+    assert shape_error_mm(1.05 * moved, v, tri, face, alignment="similarity").mean_mm < 1e-6
+    assert shape_error_mm(1.05 * moved, v, tri, face).mean_mm > 0.5
+    rr, t, s = rigid_alignment(v[face], 1.05 * moved[face], similarity=True)
+    assert s == pytest.approx(1.05) and np.allclose(rr, r) and np.allclose(t, 1.05 * np.array([12.0, -30.0, 250.0]))
+
+
+def test_shape_error_of_an_offset_along_the_normals_is_that_offset(models):
+    _, sm, _, _, _ = models
+    shp = sm(*sm.zeros(1))
+    v, n = shp.vertices[0].double().numpy(), shp.normals[0].double().numpy()
+    tri = sm.triangles.numpy()
+    face = face_vertex_mask(sm)
+    err = shape_error_mm(v + 0.8 * n, v, tri, face, alignment="none")
+    # a vertex moved 0.8 mm along its normal is 0.8 mm from its tangent plane; the piecewise-flat surface
+    # bends toward it in concave places (the eye sockets, beside the nose), so a little less there
+    assert err.median_mm == pytest.approx(0.8, abs=0.01) and 0.75 < err.mean_mm <= 0.8 + 1e-9
+
+
+def test_point_to_mesh_distance_matches_brute_force():
+    rng = np.random.default_rng(1)
+    # a bumpy 20 x 20 grid: 722 triangles, points on both sides of it
+    g = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0), indexing="ij"), -1).reshape(-1, 2)
+    v = np.concatenate([g, rng.uniform(-0.5, 0.5, (len(g), 1))], 1)
+    idx = np.arange(400).reshape(20, 20)
+    tri = np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:]], -1).reshape(-1, 3),
+                          np.stack([idx[:-1, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 3)])
+    q = np.concatenate([rng.uniform(0, 19, (300, 2)), rng.uniform(-3, 3, (300, 1))], 1)
+    got = point_to_mesh_distance(q, v, tri)
+    # brute force: the distance to a densely sampled surface (barycentric grid), an upper bound within
+    # half the sampling step of the exact value
+    w = np.array([(i, j, 60 - i - j) for i in range(61) for j in range(61 - i)]) / 60.0
+    samples = np.einsum("sk,fkc->fsc", w, v[tri]).reshape(-1, 3)
+    from scipy.spatial import cKDTree
+
+    dense = cKDTree(samples).query(q)[0]
+    assert np.all(got <= dense + 1e-9) and np.all(dense - got < 0.02)
+
+
+def test_delta_e_of_known_colours():
+    np.testing.assert_allclose(linear_rgb_to_lab([1.0, 1.0, 1.0]), [100.0, 0.0, 0.0], atol=0.01)
+    np.testing.assert_allclose(linear_rgb_to_lab([1.0, 0.0, 0.0]), [53.24, 80.09, 67.20], atol=0.02)  # sRGB red
+    np.testing.assert_allclose(linear_rgb_to_lab([0.18, 0.18, 0.18]), [49.50, 0.0, 0.0], atol=0.01)  # mid grey
+    grey, white = torch.full((1, 3, 8, 8), 0.18), torch.ones(1, 3, 8, 8)
+    e = albedo_error(grey, white, np.ones((8, 8), bool))
+    assert e.l1_linear == pytest.approx(0.82) and e.delta_e == pytest.approx(50.50, abs=0.01)
+    # a pure intensity error: the per-channel gain explains it away
+    np.testing.assert_allclose(e.gain, 1 / 0.18)
+    assert e.l1_linear_gain < 1e-9 and e.delta_e_gain < 1e-6
+    rng = np.random.default_rng(2)
+    a = rng.uniform(0.05, 0.6, (3, 16, 16))
+    mask = np.zeros((16, 16), bool)
+    mask[4:12, 4:12] = True
+    b = a.copy()
+    b[:, ~mask] = 1.0  # outside the mask: ignored
+    assert albedo_error(a, b, mask).l1_linear == 0.0 and albedo_error(a, b).l1_linear > 0.1
+    with pytest.raises(ValueError, match=r"mask: expected shape \(16, 16\), got \(8, 8\)"):
+        albedo_error(a, b, mask[:8, :8])
+    with pytest.raises(ValueError, match="pred_albedo: expected shape"):
+        albedo_error(a[:1], b)
+    with pytest.raises(ValueError, match="selects no texels"):
+        albedo_error(a, b, np.zeros((16, 16), bool))
+
+
+def test_normal_angular_error_of_rotated_normals():
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    assert normal_angular_error_deg(n, n) < 1e-6
+    assert normal_angular_error_deg(n @ _rot("x", 10).T, n) == pytest.approx(10.0, abs=1e-6)
+    assert normal_angular_error_deg(3 * n @ _rot("z", 25).T, n) == pytest.approx(25.0, abs=1e-6)  # unnormalised input
+    flat = np.zeros((1, 3, 8, 8))
+    flat[:, 2] = 1.0
+    tilted = np.einsum("ij,bjhw->bihw", _rot("y", 7), flat)
+    assert normal_angular_error_deg(torch.from_numpy(tilted), flat, np.ones((8, 8), bool)) == pytest.approx(7.0, abs=1e-6)
+    with pytest.raises(ValueError, match=r"expected pred_normals of shape \(500, 3\).*got \(499, 3\)"):
+        normal_angular_error_deg(n[1:], n)
+    with pytest.raises(ValueError, match=r"mask: expected shape \(500,\)"):
+        normal_angular_error_deg(n, n, np.ones(10, bool))
+
+
+def test_shape_error_rejects_bad_inputs(models):
+    _, sm, _, _, _ = models
+    v, tri = sm.mean.numpy(), sm.triangles.numpy()
+    with pytest.raises(ValueError, match=r"expected pred_vertices of shape \(12391, 3\).*got \(100, 3\)"):
+        shape_error_mm(v[:100], v, tri)
+    with pytest.raises(ValueError, match=r"mask: expected shape \(12391,\)"):
+        shape_error_mm(v, v, tri, np.ones(5, bool))
+    with pytest.raises(ValueError, match="alignment must be"):
+        shape_error_mm(v, v, tri, alignment="affine")
+    with pytest.raises(ValueError, match="face indices must be in"):
+        shape_error_mm(v[:10], v[:10], tri)
+
+
+def test_face_masks_leave_out_the_back_of_the_head_and_the_neck(models):
+    from fitme_cli.shape.regions import REGIONS
+
+    _, sm, _, _, _ = models
+    face = face_vertex_mask(sm)
+    lab = sm.regions.numpy()
+    assert face.shape == (sm.mean.shape[0],) and 0.2 < face.mean() < 0.8
+    assert not face[np.isin(lab, [REGIONS.index("scalp"), REGIONS.index("neck")])].any()
+    assert face[sm.landmarks.numpy()].mean() > 0.9  # the landmarks are on the face
+    uv = face_uv_mask(sm, 256)
+    assert uv.shape == (256, 256) and 0.05 < uv.mean() < 0.8
+
+
+# --- the synthetic subject ---------------------------------------------------------------------------
+
+
+def test_subject_is_deterministic_and_well_formed(models):
+    G, sm, _, r, _ = models
+    s = SyntheticSettings(size=192, n_views=3, seed=7, background="noise")
+    a, b = make_subject(G, sm, r, s), make_subject(G, sm, r, s)
+    assert np.array_equal(a.photos, b.photos) and torch.equal(a.p_s, b.p_s) and torch.equal(a.ws, b.ws)
+    assert not np.array_equal(make_subject(G, sm, r, replace(s, seed=8)).photos, a.photos)
+    k, e = sm.n_identity, sm.n_expressions
+    assert a.photos.shape == a.clean.shape == (3, 192, 192, 3) and a.photos.dtype == np.uint8
+    assert a.masks.shape == (3, 192, 192) and all(0.15 < m.mean() < 0.8 for m in a.masks)
+    assert a.p_s.shape == (1, k) and a.p_e.shape == (3, e) and float(a.p_e.min()) >= 0 and float(a.p_e.max()) <= 1
+    assert a.ws.shape == (1, G.settings.num_ws, G.settings.w_dim)
+    assert a.maps.albedo.shape == (1, 3, 256, 256) and 0 <= float(a.maps.albedo.min()) and float(a.maps.albedo.max()) <= 1
+    assert a.cameras.batch == 3 and a.lights.ambient.shape == (3, 3) and a.lights.sh.shape == (3, 9, 3)
+    assert a.vertices.shape == (3, sm.mean.shape[0], 3) and a.neutral.shape == (sm.mean.shape[0], 3)
+    assert a.landmarks.shape == (3, 468, 2) and a.ibug68.shape == (3, 68, 2)
+    assert ((a.landmarks > 0) & (a.landmarks < 192)).all()
+    np.testing.assert_array_equal(a.yaws_deg, [0, 30, -30])
+    # the landmarks are where the mesh is drawn; the degraded photo stays close to the clean render
+    for i in range(3):
+        ij = np.floor(a.ibug68[i]).astype(int)
+        assert a.masks[i][ij[:, 1], ij[:, 0]].mean() > 0.9
+        assert np.abs(a.photos[i].astype(float) - a.clean[i]).mean() < 6
+    # the first view is frontal (up to the jitter): the nose tip (landmark 4) near the landmarks' centre
+    assert abs(a.landmarks[0, 4, 0] - a.landmarks[0, :, 0].mean()) < 8
+    # the second view is turned toward the image's right: the nose tip moves right of the centre
+    assert a.landmarks[1, 4, 0] - a.landmarks[1, :, 0].mean() > 10
+
+
+def test_view_yaws_and_settings_checks(models):
+    G, sm, _, r, _ = models
+    np.testing.assert_array_equal(view_yaws(1, 30), [0])
+    np.testing.assert_array_equal(view_yaws(2, 30), [0, 30])
+    np.testing.assert_array_equal(view_yaws(5, 30), [0, 15, -15, 30, -30])
+    for bad in ({"n_views": 0}, {"size": 10}, {"background": "checker"}, {"jpeg_quality": 0}, {"truncation": 1.5},
+                {"ambient_range": (0.5, 0.2)}, {"noise_sigma": -1.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SyntheticSettings(**bad)
+    with pytest.raises(ValueError, match="SyntheticSettings"):
+        make_subject(G, sm, r, settings={"seed": 1})
+    with pytest.raises(ValueError, match="ShapeModel"):
+        make_subject(G, object(), r)
+
+
+# --- fit recovery ------------------------------------------------------------------------------------
+
+
+def _fit(models, subject, iterations: int, size: int = 128):
+    """Fit the subject's photos as ``fitme fit --preset fast`` does: detect, prepare_photo, invert (no
+    effect selection, 60 % of the iterations at 64^2 maps). Returns (start, fit, seconds): the start
+    is what ``invert`` starts from (mean shape, no expression, W average, PnP cameras)."""
+    from fitme_cli.fitting.invert import InversionSettings, invert, prepare_photo
+    from fitme_cli.fitting.metrics import evaluate_fit
+    from fitme_cli.fitting.pose import initial_camera
+    from fitme_cli.fitting.presets import preset
+    from fitme_cli.fitting.skin_mask import photo_skin_mask
+    from fitme_cli.perception.detect import DetectSettings, detect
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.render import Camera
+
+    G, sm, desc, _, topo = models
+    prepared = []
+    for photo in subject.photos:
+        lm = detect(photo, DetectSettings(identity=False)).face.landmarks
+        prepared.append(prepare_photo(photo, lm.points[:, :2], lm.ibug68, subject.settings.focal_35mm, size, 1.6,
+                                      lambda c, pts: photo_skin_mask(c, pts, topo.triangles, topo.contours)))
+    to_photo = [p.to_photo for p in prepared]
+    mean_lm = sm.mean[sm.landmarks].numpy()
+    cams = [initial_camera(p.landmarks, mean_lm, size, size, p.focal_px, principal=p.principal) for p in prepared]
+    cam0 = Camera(*(torch.cat([getattr(c, k) for c in cams]) for k in ("focal", "principal", "rotation", "translation")),
+                  size, size)
+    with torch.no_grad():
+        maps0 = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).expand(1, G.settings.num_ws, -1), noise_mode="const"),
+                            G.settings)
+    p_s0, p_e0 = sm.zeros(subject.n_views)
+    start = evaluate_fit(subject, sm, p_s0[:1], p_e0, cam0, maps0, to_photo)
+    pre = preset("fast")
+    s = InversionSettings(iterations=iterations, render_size=size, coarse_fraction=pre.coarse_fraction,
+                          coarse_resolution=pre.coarse_resolution, select_effects=False)
+    t = time.perf_counter()
+    res = invert(prepared, G, sm, desc, sm.landmarks, np.unique(topo.contours["face_oval"]), s)
+    seconds = time.perf_counter() - t
+    return start, evaluate_fit(subject, sm, res.p_s, res.p_e, res.cameras, res.maps, to_photo), seconds
+
+
+@pytest.fixture(scope="module")
+def one_view(models):
+    G, sm, _, r, _ = models
+    subject = make_subject(G, sm, r, SyntheticSettings(n_views=1, seed=0))
+    return _fit(models, subject, 60)
+
+
+@pytest.fixture(scope="module")
+def three_views(models):
+    G, sm, _, r, _ = models
+    subject = make_subject(G, sm, r, SyntheticSettings(n_views=3, seed=1))  # seed 0's -30 degree view: no face found
+    return _fit(models, subject, 60)
+
+
+def test_one_view_fit_recovers_landmarks_albedo_and_posed_shape(one_view):
+    # measured (seed 0, 60 iterations at 128^2, 1 thread, ~14 s): start -> fit
+    #   iBUG-68 landmarks 7.25 -> 3.11 px (512^2 photo; the detector itself is 7.6 px off on this render)
+    #   albedo: L1 0.117 -> 0.017, Delta E 21.4 -> 2.3 (after the per-channel gain: 6.0 -> 1.3)
+    #   posed shape (p_s and p_e, face region, rigid): 1.42 -> 1.27 mm; identity shape 1.40 -> 1.39 mm
+    # over seeds 0-5 the fits reach 2.8-4.9 px, Delta E 2.3-4.8 and posed shape 0.87-1.66 mm
+    start, fit, seconds = one_view
+    assert fit.landmark_px < 4.5 and fit.landmark_px < 0.6 * start.landmark_px
+    assert fit.albedo.delta_e < 4.0 and fit.albedo.delta_e < 0.25 * start.albedo.delta_e
+    assert fit.albedo.l1_linear < 0.03 and fit.albedo.l1_linear < 0.25 * start.albedo.l1_linear
+    assert fit.albedo.delta_e_gain < 2.5 and fit.albedo.delta_e_gain < 0.5 * start.albedo.delta_e_gain
+    assert fit.shape_posed_mean_mm < 1.4 and fit.shape_posed_mean_mm < 0.95 * start.shape_posed_mean_mm
+    assert fit.shape.mean_mm < 1.6 and fit.shape.mean_mm <= start.shape.mean_mm + 0.05
+    assert fit.normals_deg < 1.0  # the GAN's detail normals are nearly flat: a sanity bound only
+
+
+def test_three_view_fit_recovers_landmarks_and_albedo(three_views):
+    # measured (seed 1, 3 views at 0 / +30 / -30 degrees, 60 iterations at 128^2, 1 thread, ~20 s):
+    #   iBUG-68 landmarks 7.17 -> 3.82 px; albedo L1 0.280 -> 0.096, Delta E 35.0 -> 9.6 (after the
+    #   per-channel gain 12.3 -> 2.5: the fitted albedo is darker and the lights brighter, an ambiguity
+    #   60 iterations do not resolve); posed shape 0.94 -> 0.85 mm, identity shape 0.95 -> 0.95 mm
+    start, fit, seconds = three_views
+    assert fit.landmark_px < 5.0 and fit.landmark_px < 0.65 * start.landmark_px
+    assert fit.albedo.delta_e < 13.0 and fit.albedo.delta_e < 0.5 * start.albedo.delta_e
+    assert fit.albedo.delta_e_gain < 3.5 and fit.albedo.delta_e_gain < 0.4 * start.albedo.delta_e_gain
+    assert fit.shape_posed_mean_mm < 1.0 and fit.shape_posed_mean_mm < start.shape_posed_mean_mm
+    assert fit.shape.mean_mm < 1.1 and fit.shape.mean_mm <= start.shape.mean_mm + 0.05
+
+
+@pytest.mark.xfail(strict=True, reason="invert optimises p_s in raw units (prior std 100-340) with Adam at lr 1e-2: "
+                   "60-200 steps move it < 1 unit, so the identity shape stays the mean (docs/fitting_synthetic.md)")
+def test_one_view_fit_improves_the_identity_shape(one_view):
+    start, fit, _ = one_view
+    assert fit.shape.mean_mm < 0.9 * start.shape.mean_mm
+
+
+def test_fit_landmarks_px_maps_crop_pixels_to_the_photo(models):
+    """The landmark metric's projection: the true scene through an identity crop reproduces the
+    subject's own landmarks; a crop at half scale, shifted, maps back to the same photo pixels."""
+    G, sm, _, r, _ = models
+    subj = make_subject(G, sm, r, SyntheticSettings(size=128, n_views=2, seed=3))
+    eye = np.tile(np.eye(2, 3), (2, 1, 1))
+    lm = fit_landmarks_px(sm, subj.p_s, subj.p_e, subj.cameras, eye)
+    np.testing.assert_allclose(lm, subj.ibug68, atol=1e-3)
+    half = subj.cameras.with_size(64, 64)
+    crop_to_photo = np.tile(np.array([[2.0, 0, 0], [0, 2.0, 0]]), (2, 1, 1))
+    np.testing.assert_allclose(fit_landmarks_px(sm, subj.p_s, subj.p_e, half, crop_to_photo), subj.ibug68, atol=1e-3)
+    with pytest.raises(ValueError, match=r"to_photo of shape \(2, 2, 3\)"):
+        fit_landmarks_px(sm, subj.p_s, subj.p_e, subj.cameras, eye[:1])
