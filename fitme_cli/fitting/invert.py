@@ -238,7 +238,13 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
 
     def all_ws():
         return w_var if s.w_plus else w_var.expand(1, G.settings.num_ws, -1)
-    p_s = torch.zeros(1, shape_model.n_identity, requires_grad=True, device=dev)
+    # p_s is optimised in standard deviations: its raw units (mm along unit basis vectors) have
+    # sigma 60-340, so the paper's lr would move a coefficient < 1 mm over a whole fit
+    s_std = shape_model.identity_eigenvalues.sqrt().to(dev)
+    z_s = torch.zeros(1, shape_model.n_identity, requires_grad=True, device=dev)
+
+    def shape_coeffs():
+        return z_s * s_std
     p_e = torch.zeros(n, shape_model.n_expressions, requires_grad=True, device=dev)
     aa = torch.zeros(n, 3, requires_grad=True, device=dev)
     trans = pb.trans0.clone().requires_grad_(True)
@@ -247,7 +253,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     ambient = torch.full((n, 3), 0.5, requires_grad=True, device=dev)
     colour = torch.full((n, 3), 0.5, requires_grad=True, device=dev)
     extra: dict[str, torch.Tensor] = {}  # the selected second light ("dir2", "colour2") and SH environment ("sh")
-    params = [w_var, p_s, p_e, aa, light_dir, ambient, colour]
+    params = [w_var, z_s, p_e, aa, light_dir, ambient, colour]
     # translation is in mm: the paper's lr (for unit-scale parameters) would move it 0.01 mm a step
     opt = torch.optim.Adam([{"params": params}, {"params": [trans], "lr": s.lr * 100}], lr=s.lr)
     lam = dict(zip(("landmarks", "photometric", "identity", "perceptual", "w", "shape", "expression"), s.lambdas))
@@ -280,7 +286,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
 
     def select(maps):
         nonlocal choice, residuals, effects
-        frozen = [t.detach() for t in (p_s, p_e)]
+        frozen = [shape_coeffs().detach(), p_e.detach()]
         cam = pb.camera(aa.detach(), trans.detach())
         mp = ReflectanceMaps(*(t.detach() for t in (maps.albedo, maps.specular, maps.normals)))
         with torch.no_grad():
@@ -323,6 +329,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         maps = decode_maps(G.synthesis(ws, noise_mode="const", max_resolution=res), G.settings)
         if it == select_at:
             select(maps)
+        p_s = shape_coeffs()
         terms = pb.evaluate(maps, p_s, p_e, pb.camera(aa, trans), lights_now(), effects)
         terms["w"] = w_loss(ws).expand(n)
         terms["shape"] = shape_model.identity_prior(p_s).expand(n)
@@ -347,7 +354,8 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     cam = Camera(cam.focal.detach(), cam.principal.detach(), cam.rotation.detach(), cam.translation.detach(), pb.size, pb.size)
     lights = Lights(lights.ambient.detach(), lights.direction.detach(), lights.colour.detach(),
                     sh=None if lights.sh is None else lights.sh.detach())
-    return InversionResult(ws.detach(), p_s.detach(), p_e.detach(), cam, lights, maps, history, effects, choice, residuals)
+    return InversionResult(ws.detach(), shape_coeffs().detach(), p_e.detach(), cam, lights, maps, history, effects, choice,
+                           residuals)
 
 
 def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_model, descriptor,
