@@ -1,0 +1,1 @@
+"""`fitme batch`: many subjects, resumable, on local worker processes or a Ray cluster."""
