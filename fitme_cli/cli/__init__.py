@@ -19,6 +19,9 @@ _COMMANDS = {  # name -> module under fitme_cli.cli, imported only when the comm
     "train": "train",
     "fit": "fit",
     "tune": "tune",
+    "export": "export",
+    "render": "render",
+    "batch": "batch",
 }
 
 

@@ -9,7 +9,8 @@ all-zero accessor without data). ``mesh.weights`` is the default expression (zer
 
 Material: metallic-roughness with metallic 0, baseColorTexture = the diffuse albedo (sRGB PNG),
 normalTexture = the tangent-space normals (16-bit PNG, OpenGL +Y, as glTF specifies),
-KHR_materials_specular = the specular albedo (``material.py`` has the mapping). The sampler repeats u
+KHR_materials_specular = the specular albedo as ``specularColorTexture`` (grey, sRGB PNG) times
+``specularColorFactor`` (``material.py`` has the mapping). The sampler repeats u
 (the head's UVs cross u = 1 at the back seam) and clamps v.
 """
 
@@ -137,8 +138,7 @@ def gltf_document(mesh: ExportMesh, material: Material, images: dict[str, bytes]
                        "pbrMetallicRoughness": {"baseColorTexture": {"index": tex["albedo"]}, "metallicFactor": 0.0,
                                                 "roughnessFactor": round(material.roughness, 6)},
                        "normalTexture": {"index": tex["normals"], "scale": 1.0},
-                       "extensions": {"KHR_materials_specular": {"specularFactor": 1.0,
-                                                                 "specularTexture": {"index": tex["specular"]},
+                       "extensions": {"KHR_materials_specular": {"specularColorTexture": {"index": tex["specular"]},
                                                                  "specularColorFactor": [round(k, 6)] * 3}}}],
         "samplers": [{"magFilter": _LINEAR, "minFilter": _LINEAR_MIPMAP_LINEAR, "wrapS": _REPEAT, "wrapT": _CLAMP}],
         "textures": [{"sampler": 0, "source": i, "name": name} for i, name in enumerate(TEXTURE_SLOTS)],

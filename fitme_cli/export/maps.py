@@ -6,17 +6,22 @@ The avatar's maps (256^2 for the shipped generator) are in the shape model's cyl
 
 1. **Fill**: texels no triangle of the export mesh covers (UV gutters, the pole at the top) are
    replaced by a push-pull fill from the covered ones, so bilinear filtering and mipmaps at a UV border
-   never pull in unrelated (or black) values. Non-finite texels are filled the same way.
+   never pull in unrelated (or black) values. Non-finite texels are filled the same way. Before that,
+   a margin of ``MapSettings.border_texels`` along the map's four edges is replaced by the mirror image
+   of the texels next to it: a convolutional generator's outermost texels carry padding artefacts (the
+   shipped one draws a bright, green-tinged stripe in its last columns, which on the head is a line down
+   the back). Mirroring keeps the texture (hair strands) that a smooth fill would wash out.
 2. **Seam**: the columns at u = 0 and u = 1 are neighbours on the head, but a generator does not know
    that; a band on each side is cross-faded so both edges meet at their mean (samplers wrap u).
-3. **Upsample** to the export size: Lanczos-4 for the albedos (clamped to [0, 1]; the kernel's
-   overshoot would otherwise leave values outside the physical range), bicubic for the normals, then
+3. **Upsample** to the export size: Lanczos-4 for the albedos, each output clamped into the range of
+   the source texels around it (the kernel's ringing would otherwise draw halos around hair strands
+   and undershoot to black next to dark ones), bicubic for the normals, then
    renormalised with z kept on the outer hemisphere. The image is padded by wrapping in u and by
    repeating edges in v first, so the seam stays continuous and borders are not darkened.
 
 Encodings (docs/export.md): albedo EXR half-float linear RGB, PNG 8-bit sRGB; specular EXR half-float
-linear grey (R = G = B), PNG 8-bit RGBA with the linear value in every channel (glTF's
-KHR_materials_specular reads the strength from A); normals tangent space, OpenGL convention (+x along
+linear grey (R = G = B), PNG 8-bit sRGB grey (glTF's KHR_materials_specular reads it as
+``specularColorTexture``, an sRGB colour); normals tangent space, OpenGL convention (+x along
 u, +y along v, i.e. up in the image, +z out), EXR half-float and 16-bit PNG of n * 0.5 + 0.5 (linear).
 """
 
@@ -28,7 +33,7 @@ import cv2
 import numpy as np
 
 __all__ = ["MapSettings", "SourceMaps", "ExportMaps", "uv_coverage", "push_pull_fill", "blend_u_seam",
-           "upsample", "prepare_maps", "encode_png", "exr_arrays", "MAP_NAMES"]
+           "mirror_margins", "upsample", "prepare_maps", "encode_png", "exr_arrays", "MAP_NAMES"]
 
 MAP_NAMES = ("albedo", "specular", "normals")
 
@@ -36,10 +41,12 @@ MAP_NAMES = ("albedo", "specular", "normals")
 @dataclass(frozen=True)
 class MapSettings:
     """resolution: side of the exported maps (a power of two, 64..4096); seam_band: width of the
-    cross-fade at u = 0 and u = 1, as a fraction of the source width."""
+    cross-fade at u = 0 and u = 1, as a fraction of the source width; border_texels: source texels
+    along each edge that are refilled (generator padding artefacts), per 256 texels of source width."""
 
     resolution: int = 1024
     seam_band: float = 0.03
+    border_texels: int = 4
 
     def __post_init__(self) -> None:
         r = self.resolution
@@ -47,6 +54,8 @@ class MapSettings:
             raise ValueError(f"resolution must be a power of two from 64 to 4096, got {r!r}")
         if not 0.0 <= self.seam_band <= 0.25:
             raise ValueError(f"seam_band must be in [0, 0.25], got {self.seam_band!r}")
+        if not isinstance(self.border_texels, int) or not 0 <= self.border_texels <= 16:
+            raise ValueError(f"border_texels must be an integer in [0, 16], got {self.border_texels!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +79,7 @@ class SourceMaps:
 class ExportMaps:
     """The exported maps at ``MapSettings.resolution`` (S), float32, same conventions as SourceMaps;
     coverage: (S, S) bool, texels the mesh covers (with u wrapped); filled_fraction: share of the
-    source texels that were filled (not covered by the mesh, or not finite)."""
+    source texels replaced (the mirrored margins, and texels not covered by the mesh or not finite)."""
 
     albedo: np.ndarray
     specular: np.ndarray
@@ -125,17 +134,33 @@ def push_pull_fill(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
         xs = xs.reshape(xs.shape[0] // 2, 2, xs.shape[1] // 2, 2, -1).sum((1, 3))
         ws = ws.reshape(ws.shape[0] // 2, 2, ws.shape[1] // 2, 2).sum((1, 3))
         levels.append((xs, ws))
-    # pull: from the coarsest level down, holes take the upsampled coarser mean
+    # pull: from the coarsest level down, holes take the (bilinearly) upsampled coarser mean
     xs, ws = levels[-1]
     mean = xs / np.maximum(ws, 1e-12)[..., None]
     for xs, ws in reversed(levels[:-1]):
         h, wd = ws.shape
-        up = np.repeat(np.repeat(mean, 2, 0), 2, 1)[:h, :wd]
+        hh, ww = mean.shape[0] * 2, mean.shape[1] * 2
+        up = cv2.resize(mean, (ww, hh), interpolation=cv2.INTER_LINEAR).reshape(hh, ww, -1)[:h, :wd]
         own = xs / np.maximum(ws, 1e-12)[..., None]
         a = np.clip(ws, 0.0, 1.0)[..., None]  # a full-weight texel keeps its own value
         mean = a * own + (1 - a) * up
     out = np.where(valid[..., None], np.asarray(img, np.float64).reshape(x.shape), mean)
     return (out[..., 0] if squeeze else out).astype(np.float32)
+
+
+def mirror_margins(x: np.ndarray, m: int) -> np.ndarray:
+    """Replace ``m`` texels along each of the four edges by the mirror image of the next ``m``: column 0
+    takes column 2m - 1, column m - 1 takes column m (likewise for the last columns and the rows)."""
+    if m <= 0:
+        return x.copy()
+    if 2 * m > min(x.shape[:2]):
+        raise ValueError(f"margin {m} is too wide for a {x.shape[0]}x{x.shape[1]} map")
+    x = x.copy()
+    x[:, :m] = x[:, m : 2 * m][:, ::-1]
+    x[:, -m:] = x[:, -2 * m : -m][:, ::-1]
+    x[:m] = x[m : 2 * m][::-1]
+    x[-m:] = x[-2 * m : -m][::-1]
+    return x
 
 
 def blend_u_seam(img: np.ndarray, band: int) -> np.ndarray:
@@ -154,20 +179,35 @@ def blend_u_seam(img: np.ndarray, band: int) -> np.ndarray:
     return x
 
 
-def upsample(img: np.ndarray, size: int, interpolation: int) -> np.ndarray:
+def upsample(img: np.ndarray, size: int, interpolation: int, antiring: bool = False) -> np.ndarray:
     """(R, R[, C]) -> (size, size[, C]) float32, padded by wrapping in u and repeating edges in v so the
-    kernel sees the head's neighbours across the back seam. ``size`` a multiple of R (or R itself)."""
+    kernel sees the head's neighbours across the back seam. ``size`` a multiple of R (or R itself).
+    ``antiring``: clamp each output texel into the range of the 3 x 3 source texels around it, so a
+    sharp kernel (Lanczos) adds no halo: no texel brighter or darker than its neighbourhood, and no
+    black specks where it would undershoot below zero next to dark hair."""
     r = img.shape[0]
     if size == r:
         return img.astype(np.float32)
     if size % r:
         raise ValueError(f"upsample: {size} is not a multiple of the source size {r}")
     k, p = size // r, 4  # Lanczos-4 reads 4 texels each side
-    pad = ((p, p), (0, 0)) + ((0, 0),) * (img.ndim - 2)
-    x = np.pad(img.astype(np.float32), pad, mode="edge")
-    x = np.pad(x, ((0, 0), (p, p)) + ((0, 0),) * (img.ndim - 2), mode="wrap")
-    y = cv2.resize(x, (x.shape[1] * k, x.shape[0] * k), interpolation=interpolation)
-    return np.ascontiguousarray(y[p * k : p * k + size, p * k : p * k + size])
+    extra = ((0, 0),) * (img.ndim - 2)
+    x = np.pad(img.astype(np.float32), ((p, p), (0, 0)) + extra, mode="edge")
+    x = np.pad(x, ((0, 0), (p, p)) + extra, mode="wrap")
+
+    def up(a: np.ndarray, how: int) -> np.ndarray:
+        y = cv2.resize(a, (a.shape[1] * k, a.shape[0] * k), interpolation=how).reshape(a.shape[0] * k, a.shape[1] * k, -1)
+        return y[p * k : p * k + size, p * k : p * k + size].reshape((size, size) + img.shape[2:])
+
+    y = up(x, interpolation)
+    if antiring:
+        kernel = np.ones((2, 2), np.uint8)  # the two anchors together: the 3 x 3 texels around each output
+        lo = up(cv2.erode(x, kernel, anchor=(0, 0)), cv2.INTER_NEAREST)
+        hi = up(cv2.dilate(x, kernel, anchor=(0, 0)), cv2.INTER_NEAREST)
+        lo2 = up(cv2.erode(x, kernel, anchor=(1, 1)), cv2.INTER_NEAREST)
+        hi2 = up(cv2.dilate(x, kernel, anchor=(1, 1)), cv2.INTER_NEAREST)
+        y = np.clip(y, np.minimum(lo, lo2), np.maximum(hi, hi2))
+    return np.ascontiguousarray(y, dtype=np.float32)
 
 
 def _unit_normals(n: np.ndarray) -> np.ndarray:
@@ -186,14 +226,19 @@ def prepare_maps(source: SourceMaps, uv: np.ndarray, uv_faces: np.ndarray, setti
     stack = np.concatenate([source.albedo, source.specular[..., None], source.normals], -1).astype(np.float32)
     finite = np.isfinite(stack).all(-1)
     valid = uv_coverage(uv, uv_faces, r) & finite
+    m = int(round(settings.border_texels * r / 256))
+    stack, valid = mirror_margins(stack, m), mirror_margins(valid, m)  # a margin texel is as good as its source
+    kept = valid.copy()
+    if m:
+        kept[:m], kept[-m:], kept[:, :m], kept[:, -m:] = False, False, False, False
     if not valid.any():
         raise ValueError("no texel of the maps is both covered by the mesh and finite")
     filled = push_pull_fill(stack, valid)
     filled = blend_u_seam(filled, int(round(settings.seam_band * r)))
-    albedo = np.clip(upsample(filled[..., :3], size, cv2.INTER_LANCZOS4), 0.0, 1.0)
-    specular = np.clip(upsample(filled[..., 3], size, cv2.INTER_LANCZOS4), 0.0, 1.0)
+    albedo = np.clip(upsample(filled[..., :3], size, cv2.INTER_LANCZOS4, antiring=True), 0.0, 1.0)
+    specular = np.clip(upsample(filled[..., 3], size, cv2.INTER_LANCZOS4, antiring=True), 0.0, 1.0)
     normals = _unit_normals(upsample(_unit_normals(filled[..., 4:7]), size, cv2.INTER_CUBIC))
-    return ExportMaps(albedo, specular, normals, uv_coverage(uv, uv_faces, size), float(1.0 - valid.mean()))
+    return ExportMaps(albedo, specular, normals, uv_coverage(uv, uv_faces, size), float(1.0 - kept.mean()))
 
 
 def _srgb8(linear: np.ndarray) -> np.ndarray:
@@ -207,8 +252,7 @@ def encode_png(maps: ExportMaps, name: str) -> bytes:
     if name == "albedo":
         arr = _srgb8(maps.albedo)[..., ::-1]  # cv2 writes BGR
     elif name == "specular":
-        s = np.round(np.clip(maps.specular, 0, 1) * 255).astype(np.uint8)
-        arr = np.repeat(s[..., None], 4, -1)  # BGRA, all the linear value
+        arr = np.repeat(_srgb8(maps.specular)[..., None], 3, -1)  # grey: glTF reads it as an sRGB colour
     elif name == "normals":
         arr = np.round(np.clip(maps.normals * 0.5 + 0.5, 0, 1) * 65535).astype(np.uint16)[..., ::-1]
     else:

@@ -5,9 +5,11 @@ Matching the specular lobe (derivation in docs/export.md): Blinn-Phong with expo
 width of a GGX/Beckmann lobe with alpha^2 = 2 / (s + 2); glTF's roughness is sqrt(alpha). With a light
 scaled so that diffuse = A_D * c * (n . l) in both models, the peaks at normal incidence agree when
 F0 = 4 alpha^2 A_S. KHR_materials_specular gives F0 = min(0.04 * specularColor, 1) * specular, so the
-specular albedo goes into ``specularTexture`` (its A channel) and ``specularColorFactor`` carries
+specular albedo goes into ``specularColorTexture`` (grey) and ``specularColorFactor`` carries
 4 alpha^2 / 0.04 (6.25 for s = 30, the renderer's default: F0 = 0.025 for the average A_S of 0.1, close
-to skin's measured 0.028).
+to skin's measured 0.028). The colour texture rather than ``specularTexture`` (the A channel, a
+strength): Blender 3.4's importer ignores the latter and would make every texel as glossy as the
+factor alone says.
 """
 
 from __future__ import annotations

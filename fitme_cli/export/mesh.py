@@ -146,8 +146,16 @@ def head_topology(shape_model, settings: MeshSettings = MeshSettings()) -> HeadT
 
 
 def head_vertices(shape_model, topo: HeadTopology, p_s: torch.Tensor, p_e: torch.Tensor) -> torch.Tensor:
-    """(B, K), (B, E) -> (B, V + caps, 3) mm in the model frame, the caps' centres included."""
-    return topo.extend(shape_model.vertices(p_s, p_e), offset=True)
+    """(B, K), (B, E) -> (B, V + caps, 3) float64 mm in the model frame, the caps' centres included.
+    Computed from float64 copies of the model's buffers (the model itself is not converted)."""
+    p_s, p_e = torch.as_tensor(p_s).double().cpu(), torch.as_tensor(p_e).double().cpu()
+    if p_s.ndim != 2 or p_s.shape[1] != shape_model.n_identity or p_e.ndim != 2 or p_e.shape[1] != shape_model.n_expressions:
+        raise ValueError(f"expected p_s (B, {shape_model.n_identity}) and p_e (B, {shape_model.n_expressions}), "
+                         f"got {tuple(p_s.shape)} and {tuple(p_e.shape)}")
+    v = (shape_model.mean.detach().cpu().double()
+         + torch.einsum("vck,bk->bvc", shape_model.identity_basis.detach().cpu().double(), p_s)
+         + torch.einsum("vce,be->bvc", shape_model.expression_basis.detach().cpu().double(), p_e))
+    return topo.extend(v, offset=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,8 +220,12 @@ def _repair_tangents(t: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
 
 
 def _split(topo: HeadTopology) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One export vertex per distinct (position, uv) pair: (position_index (N,), uv_index (N,), faces (F, 3))."""
-    pairs = np.stack([topo.triangles.ravel(), topo.uv_faces.ravel()], 1)
+    """One export vertex per distinct (position, uv) pair: (position_index (N,), uv_index (N,), faces (F, 3)).
+    UVs are compared by value: the shape model's seam gives a position one u + 1 copy per triangle
+    corner across the seam, and those identical copies must not split the vertex further."""
+    _, first, canon = np.unique(topo.uv, axis=0, return_index=True, return_inverse=True)
+    uv_canon = first[canon.ravel()]  # each uv index -> the first index with the same coordinates
+    pairs = np.stack([topo.triangles.ravel(), uv_canon[topo.uv_faces.ravel()]], 1)
     uniq, inv = np.unique(pairs, axis=0, return_inverse=True)
     return uniq[:, 0], uniq[:, 1], inv.reshape(-1, 3).astype(np.int64)
 
@@ -230,12 +242,8 @@ def build_export_mesh(shape_model, p_s: torch.Tensor, weights: np.ndarray | None
     if w.shape != (E,) or not np.isfinite(w).all():
         raise ValueError(f"weights: expected {E} finite expression weights, got shape {w.shape}")
     topo = topo or head_topology(shape_model, settings)
-    # float64 copies of the buffers (not .double() on the module, which would convert the caller's model)
-    mean = shape_model.mean.detach().cpu().double()
-    ident = shape_model.identity_basis.detach().cpu().double()
+    base = head_vertices(shape_model, topo, p_s, torch.zeros(1, E, dtype=torch.float64))  # (1, P, 3) mm
     expr = shape_model.expression_basis.detach().cpu().double()
-    neutral_mm = mean + torch.einsum("vck,k->vc", ident, p_s[0])  # (V, 3)
-    base = topo.extend(neutral_mm[None], offset=True)  # (1, P, 3) mm
     basis = topo.extend(expr.permute(2, 0, 1), offset=False)  # (E, P, 3) mm per unit weight
     posed = base + torch.einsum("epc,e->pc", basis, torch.as_tensor(w))[None] if w.any() else base
     _, n0, t0 = geometry(topo, base)

@@ -31,7 +31,7 @@ from .material import Material
 from .mesh import ExportMesh, MeshSettings
 
 __all__ = ["FORMATS", "MAP_FORMATS", "EXPRESSIONS", "ExportSettings", "ExportResult", "planned_files",
-           "check_output", "export_avatar"]
+           "check_output", "check_output_file", "export_avatar"]
 
 FORMATS = ("glb", "gltf", "obj")
 MAP_FORMATS = ("exr", "png")
@@ -44,7 +44,7 @@ class ExportSettings:
     expression: "neutral", or "fitted" (the first photo's expression: baked into the OBJ, the default
     morph weights of the glTF); force: replace existing files."""
 
-    formats: tuple[str, ...] = ("glb",)
+    formats: tuple[str, ...] = ("glb", "obj")
     maps: tuple[str, ...] = ("exr", "png")
     resolution: int = 1024
     expression: str = "neutral"
@@ -109,6 +109,14 @@ def check_output(out_dir: Path, avatar_dir: Path, names: list[str], force: bool)
         probe = probe.parent
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
         raise OutputNotWritable(f"{probe} is not writable", out_dir)
+
+
+def check_output_file(path: Path, avatar_dir: Path, force: bool) -> None:
+    """The same refusals for one output file (``fitme render``'s image)."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputNotWritable("the output path is a directory; give a file name such as sheet.png", path)
+    check_output(path.parent, avatar_dir, [path.name], force)
 
 
 def _write(path: Path, data: bytes) -> None:
@@ -197,7 +205,7 @@ def export_avatar(avatar_dir: Path, out_dir: Path, settings: ExportSettings = Ex
                                      "material": asdict(settings.material) | {"roughness": round(settings.material.roughness, 6),
                                                                               "specular_colour_factor": round(settings.material.specular_colour_factor, 6)}},
                         "conventions": extras["fitme"] | {"texcoords": "OBJ: v up; glTF: t = 1 - v; u wraps at the back seam",
-                                                          "albedo": "linear (EXR), sRGB (PNG)", "specular": "linear",
+                                                          "albedo": "linear (EXR), sRGB (PNG)", "specular": "linear (EXR), sRGB grey (PNG)",
                                                           "normals_encoding": "n * 0.5 + 0.5"},
                         "mesh": {"vertices": mesh.n_vertices, "triangles": int(len(mesh.faces)),
                                  "morph_targets": len(mesh.target_names)},
