@@ -60,7 +60,7 @@ def command(photos: tuple[Path, ...], out_dir: Path, preset_name: str, iteration
     from ..perception.detect import DetectSettings, detect
     from ..perception.dlib_resnet import load_dlib_resnet
     from ..perception.registry import ensure_models
-    from ..reflectance.gan.store import load_generator
+    from ..reflectance.gan.store import load_generator, load_w_prior
     from ..render.effects import parse_effects
     from ..shape.facemesh_topology import read_facemesh_topology
     from ..shape.model import load_shape_model
@@ -124,7 +124,8 @@ def command(photos: tuple[Path, ...], out_dir: Path, preset_name: str, iteration
     staging = None
     try:
         t = time.perf_counter()
-        inv = invert(prepared, G, sm, desc, sm.landmarks, jaw, inv_s, progress=bar.callback("invert"), device=dev)
+        inv = invert(prepared, G, sm, desc, sm.landmarks, jaw, inv_s, progress=bar.callback("invert"), device=dev,
+                     prior=load_w_prior(models, G))
         timings["invert_s"] = time.perf_counter() - t
         maps, tuned, tune_hist = inv.maps, {}, []
         if tune_iterations:

@@ -224,11 +224,12 @@ def _fit_candidate(pb: _Problem, maps, p_s, p_e, cam, make_lights, params, effec
 
 def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, landmark_vertices: torch.Tensor,
            jaw: np.ndarray, s: InversionSettings = InversionSettings(), progress=None,
-           device: torch.device | str = "cpu") -> InversionResult:
+           device: torch.device | str = "cpu", prior=None) -> InversionResult:
     """Fit the photos of one person. ``descriptor``: the dlib ResNet torch twin (identity and perceptual
     losses); ``landmark_vertices``: (468,) mesh vertex of each FaceMesh landmark; ``jaw``: landmark
     indices on the face outline. ``progress(i, total, losses)`` is called every iteration. G, the shape
-    model and the descriptor must already be on ``device``."""
+    model and the descriptor must already be on ``device``. ``prior``: the generator's ``WPrior``
+    (``gan.store.load_w_prior`` caches it); None fits it here (0.8 s)."""
     torch.manual_seed(s.seed)
     dev = torch.device(device)
     pb = _Problem(photos, shape_model, descriptor, landmark_vertices, jaw, s.jaw_weight, s.render_size, dev)
@@ -261,9 +262,11 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     n_coarse = int(s.coarse_fraction * s.iterations)
     r_full = G.settings.resolution
     if s.w_prior == "pnorm":
-        from ..reflectance.gan.latent_prior import fit_w_prior
+        if prior is None:
+            from ..reflectance.gan.latent_prior import fit_w_prior
 
-        prior = fit_w_prior(G.mapping, G.settings.z_dim)
+            prior = fit_w_prior(G.mapping, G.settings.z_dim)
+        prior = prior.to(dev)
 
         def w_loss(ws):
             return prior.distance(ws)

@@ -22,7 +22,7 @@ PRESETS = {
     # the paper's 200 + 20 iterations (main text) at 256^2 (it renders 512^2 on a GPU)
     "default": FitPreset("default", 200, 20, 256, 0.4, 64, True),
     # a quarter of the iterations at 128^2, mostly at coarse maps, no tuning: a preview in ~15 s
-    "fast": FitPreset("fast", 60, 0, 128, 0.6, 64, False),
+    "fast": FitPreset("fast", 50, 0, 128, 0.6, 64, False),
     # the supplementary's 250 + 30, rendered at the paper's 512^2
     "best": FitPreset("best", 250, 30, 512, 0.3, 64, True),
 }
