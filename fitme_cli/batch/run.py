@@ -31,7 +31,7 @@ __all__ = ["BatchSettings", "SubjectResult", "effective_settings", "run_subject"
 class BatchSettings:
     preset: str = "default"
     export: tuple[str, ...] = ()  # formats for `fitme export` (e.g. glb, obj); empty: no export
-    workers: int = 1
+    workers: int = 2  # the CLI's default is the number of cores
     threads: int = 0  # torch threads per worker; 0: cores // workers
     retry_failed: bool = False
     timeout_s: float = 3600.0  # per subject
