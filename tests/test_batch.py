@@ -116,8 +116,10 @@ def test_batch_on_a_local_ray_instance(batch_input, tmp_path):
     m = tmp_path / "one.csv"
     m.write_text(f"subject,photos,iterations\nalice,{batch_input / 'in' / 'alice' / 'portrait.jpg'},2\n")
     out = tmp_path / "out"
-    r = CliRunner().invoke(main, ["batch", str(m), "-o", str(out), "--preset", "fast", "--executor", "ray", "--threads", "1"])
+    r = CliRunner().invoke(main, ["batch", str(m), "-o", str(out), "--preset", "fast", "--executor", "ray", "--threads", "1",
+                                  "--export", "glb"])
     assert r.exit_code == 0, r.output
     st = json.loads((out / "alice" / "status.json").read_text())
     assert st["status"] == "done" and st["executor"] == "ray"
     assert (out / "alice" / "avatar" / "params.safetensors").is_file() and (out / "alice" / "thumb.png").is_file()
+    assert (out / "alice" / "export" / "head.glb").stat().st_size > 100_000  # the export came back from the task
