@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO_DIR ?= out/demo
 
-.PHONY: setup models tools test demo bench clean clean-models verify-export
+.PHONY: setup models tools test demo bench stability clean clean-models verify-export
 
 setup: $(VENV)/.installed models
 
@@ -45,6 +45,16 @@ bench: setup
 	$(BIN)/python benchmarks/bench_augment.py
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_fit.py --presets fast,default --views 1,3
+	$(BIN)/fitme bench --quick -o out/bench
+
+# the stability suite (docs/benchmarks.md): the renderer's hard cases and whole fits of hard photos (yaw 80,
+# side light, dark, overexposed, sunglasses, tiny face, JPEG q5, grayscale) must stay finite and converge.
+# pytest is the gate (a known bug is xfailed there); then the table, whose exit status is ignored ("-")
+# because it reports that known failure too
+STABILITY_DIR ?= out/stability
+stability: setup
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q tests/test_render_stability.py tests/test_stability_fit.py
+	-OMP_NUM_THREADS=1 $(BIN)/fitme bench --stability -o $(STABILITY_DIR) --threads 1
 
 # `fitme export` checked by real consumers (docs/export.md): the Khronos glTF-Validator (npm, into
 # .cache/npm, git-ignored), trimesh and OpenEXR (tests), Blender (Debian package) importing the GLB

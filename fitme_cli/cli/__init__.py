@@ -22,6 +22,7 @@ _COMMANDS = {  # name -> module under fitme_cli.cli, imported only when the comm
     "export": "export",
     "render": "render",
     "batch": "batch",
+    "bench": "bench",
 }
 
 

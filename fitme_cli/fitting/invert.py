@@ -45,7 +45,7 @@ class InversionSettings:
     lambdas: tuple[float, float, float, float, float, float, float] = (100.0, 0.5, 1.0, 1.0, 5e-2, 5e-4, 5e-4)
     jaw_weight: float = 0.3  # landmarks on the face outline slide along it: trust them less
     coarse_fraction: float = 0.4  # share of iterations with the synthesis stopped at coarse_resolution
-    coarse_resolution: int = 64
+    coarse_resolution: int = 128  # see presets.py: 64 jumps at the switch
     # the paper optimises W, one w for every layer; W+ (a w per layer) fits the photo more closely but
     # leaves the generator's distribution: noisy, striped albedo with the light baked in (paper Fig. 9d)
     w_plus: bool = False

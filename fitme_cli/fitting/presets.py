@@ -14,17 +14,20 @@ class FitPreset:
     tune_iterations: int  # 0: no tuning
     render_size: int  # fitting crop side in pixels
     coarse_fraction: float  # share of the inversion with the synthesis stopped at coarse_resolution
+    # 128, not 64: our generator's 128^2 and 256^2 blocks change the colours, not only the detail, so a W
+    # fitted on 64^2 maps jumps at the switch and does not recover (synthetic subjects, 50 iterations:
+    # albedo Delta E 11.0 / 9.5 with 64, 2.5 / 3.4 with 128, for the same time; docs/fitting.md)
     coarse_resolution: int
     select_effects: bool  # run the effect selector (costs ~3 x selection_steps renders)
 
 
 PRESETS = {
     # the paper's 200 + 20 iterations (main text) at 256^2 (it renders 512^2 on a GPU)
-    "default": FitPreset("default", 200, 20, 256, 0.4, 64, True),
+    "default": FitPreset("default", 200, 20, 256, 0.4, 128, True),
     # a quarter of the iterations at 128^2, mostly at coarse maps, no tuning: a preview in ~15 s
-    "fast": FitPreset("fast", 50, 0, 128, 0.6, 64, False),
+    "fast": FitPreset("fast", 50, 0, 128, 0.6, 128, False),
     # the supplementary's 250 + 30, rendered at the paper's 512^2
-    "best": FitPreset("best", 250, 30, 512, 0.3, 64, True),
+    "best": FitPreset("best", 250, 30, 512, 0.3, 128, True),
 }
 
 

@@ -1,0 +1,165 @@
+"""fitme bench: the report and regression logic on fabricated results (fast), and one real
+``fitme bench --regress tests/bench_baseline.json`` through click's runner (~20-40 s at 1 thread)."""
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from fitme_cli.bench.regress import TOLERANCES, RegressSettings, Tolerance, compare, read_baseline, write_baseline
+from fitme_cli.bench.report import markdown_table, pareto_front, pareto_plots, summarise, write_csv
+from fitme_cli.bench.sweep import RunResult, Variant, variants
+
+BASELINE = Path(__file__).parent / "bench_baseline.json"
+
+
+def _r(variant, subject, status="ok", **kw):
+    base = dict(landmark_px=3.0, shape_mm=1.0, shape_posed_mm=1.1, albedo_l1=0.05, albedo_delta_e=5.0,
+                albedo_delta_e_gain=2.0, normals_deg=0.1, identity_sim=0.8, photometric=20.0, fit_s=10.0, peak_mib=900.0)
+    return RunResult(variant, subject, 1, status, **(base | kw) if status == "ok" else {"peak_mib": 950.0})
+
+
+# --- report ------------------------------------------------------------------------------------------
+
+
+def test_summarise_takes_medians_over_ok_runs_only():
+    rs = [_r("fast", "s1", landmark_px=2.0, fit_s=8.0), _r("fast", "s2", landmark_px=4.0, fit_s=12.0),
+          _r("fast", "s3", landmark_px=9.0, fit_s=30.0), _r("fast", "s4", status="no face"),
+          _r("slow", "s1", fit_s=100.0, peak_mib=2000.0)]
+    fast, slow = summarise(rs)
+    assert (fast.variant, fast.n_ok, fast.n_runs) == ("fast", 3, 4)
+    assert fast.metrics["landmark_px"] == 4.0 and fast.fit_s == 12.0  # medians: robust to the 30 s outlier
+    assert fast.peak_mib == 950.0  # the failed run's process peak counts too
+    assert slow.fit_s == 100.0 and slow.peak_mib == 2000.0
+    none = summarise([_r("x", "s1", status="error: boom")])[0]
+    assert none.n_ok == 0 and math.isnan(none.fit_s) and math.isnan(none.metrics["shape_mm"])
+
+
+def test_markdown_and_csv(tmp_path):
+    rs = [_r("preset fast", "s1"), _r("preset fast", "s2", status="no face")]
+    md = markdown_table(summarise(rs))
+    lines = md.strip().splitlines()
+    assert lines[0].startswith("| setting | views | ok | fit s (median)") and len(lines) == 3
+    assert lines[2].startswith("| preset fast | 1 | 1/2 | 10.0 | 950 | 3.00 | 1.000 |")
+    write_csv(rs, tmp_path / "r.csv")
+    rows = (tmp_path / "r.csv").read_text().splitlines()
+    assert rows[0].startswith("variant,subject,views,status,landmark_px") and len(rows) == 3 and ",no face," in rows[2]
+
+
+def test_pareto_front_and_plot(tmp_path):
+    t = [10.0, 20.0, 15.0, 40.0, 5.0, math.nan]
+    e = [3.0, 1.0, 3.5, 0.5, 6.0, 0.1]
+    # (5, 6), (10, 3), (20, 1), (40, 0.5); (15, 3.5) is beaten by (10, 3); NaN time never counts
+    assert pareto_front(t, e) == [4, 0, 1, 3]
+    assert pareto_front([1.0, 1.0], [2.0, 2.0]) == [0]
+    s = summarise([_r("a", "s", fit_s=5.0), _r("b", "s", fit_s=50.0, landmark_px=1.0, identity_sim=0.9)])
+    p = pareto_plots(s, tmp_path / "p.png")
+    assert p.stat().st_size > 5000 and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="unknown metrics \\['speed'\\]"):
+        pareto_plots(s, tmp_path / "q.png", metrics=("speed",))
+
+
+def test_variants_quick_is_a_subset_and_names_are_unique():
+    q, full = variants(True), variants(False)
+    assert len({v.name for v in full}) == len(full) and {v.name for v in q} <= {v.name for v in full}
+    assert "preset best" not in {v.name for v in q} and "preset best" in {v.name for v in full}
+    assert {v.views for v in q} == {1, 3}
+    s = Variant("x", iterations=7, forced_effects=(("shadows", True),)).settings()
+    assert s.iterations == 7 and s.render_size == 128 and s.forced_effects == (("shadows", True),)
+    assert Variant.from_dict({"name": "y", "forced_effects": [["specular", False]]}).forced_effects == (("specular", False),)
+    with pytest.raises(ValueError, match="views must be 1 or 3, got 2"):
+        Variant("z", views=2)
+    with pytest.raises(ValueError, match="unknown effect 'glow'"):
+        Variant("z", forced_effects=(("glow", True),)).settings()
+
+
+# --- regression logic --------------------------------------------------------------------------------
+
+
+def _baseline(subjects):
+    return {"subjects": subjects, "tolerances": {k: {"abs": v.abs, "rel": v.rel} for k, v in TOLERANCES.items()}}
+
+
+def test_compare_names_metric_and_subject_beyond_tolerance():
+    base = _baseline({"synthetic_01": {"landmark_px": 4.0, "albedo_delta_e": 10.0, "identity_sim": 0.8, "shape_mm": None},
+                      "astronaut": {"identity_sim": 0.5, "photometric": 30.0}})
+    # within tolerance (landmarks +0.55 < 15 % of 4; Delta E +1.4 < 1.5) and improvements: no regression
+    ok = {"synthetic_01": {"landmark_px": 4.55, "albedo_delta_e": 11.4, "identity_sim": 0.99},
+          "astronaut": {"identity_sim": 0.48, "photometric": 10.0}}
+    assert compare(ok, base) == []
+    bad = {"synthetic_01": {"landmark_px": 4.7, "albedo_delta_e": 9.0, "identity_sim": 0.76},
+           "astronaut": {"identity_sim": 0.46, "photometric": float("nan")}}
+    regs = compare(bad, base)
+    got = {(r.subject, r.metric) for r in regs}
+    assert got == {("synthetic_01", "landmark_px"), ("synthetic_01", "identity_sim"), ("astronaut", "identity_sim"),
+                   ("astronaut", "photometric")}
+    text = "\n".join(map(str, regs))
+    assert "synthetic_01: landmark_px 4.7 vs baseline 4 (worse by 0.7 > allowed 0.6)" in text
+    assert "astronaut: photometric missing" in text
+    # a failed fit (only a status) regresses every metric of that subject, a subject not run every one of its own
+    failed = compare({"astronaut": {"status": "NoFaceFound: no face"}}, base)
+    assert {(r.subject, r.metric) for r in failed} == {("astronaut", "identity_sim"), ("astronaut", "photometric"),
+                                                       ("synthetic_01", "landmark_px"), ("synthetic_01", "albedo_delta_e"),
+                                                       ("synthetic_01", "identity_sim")}
+    # the baseline's own tolerances win over the defaults
+    strict = base | {"tolerances": {"landmark_px": {"abs": 0.01, "rel": 0.0}}}
+    assert ("synthetic_01", "landmark_px") in {(r.subject, r.metric) for r in compare(ok, strict)}
+    assert Tolerance(0.5, 0.15).allowed(10.0) == 1.5 and Tolerance(0.5, 0.15).allowed(1.0) == 0.5
+
+
+def test_baseline_round_trip_and_checks(tmp_path):
+    s = RegressSettings(iterations=3)
+    p = tmp_path / "b.json"
+    write_baseline(p, {"astronaut": {"landmark_px": 3.0, "shape_mm": float("nan")}}, s)
+    doc = read_baseline(p, s)
+    assert doc["subjects"]["astronaut"] == {"landmark_px": 3.0, "shape_mm": None}
+    assert compare({"astronaut": {"landmark_px": 3.0}}, doc) == []
+    with pytest.raises(ValueError, match="made with settings .* rewrite it with --update-baseline"):
+        read_baseline(p, RegressSettings(iterations=4))
+    with pytest.raises(FileNotFoundError, match="--update-baseline"):
+        read_baseline(tmp_path / "none.json", s)
+    doc["subjects"]["astronaut"]["beauty"] = 1.0
+    p.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="unknown metric 'beauty'"):
+        read_baseline(p, s)
+
+
+def test_committed_baseline_matches_the_regress_settings():
+    doc = read_baseline(BASELINE, RegressSettings())
+    assert set(doc["subjects"]) == {"astronaut", "synthetic_01", "synthetic_02"}
+    assert all(math.isfinite(v) for v in doc["subjects"]["synthetic_01"].values())
+
+
+# --- the real run ------------------------------------------------------------------------------------
+
+
+def test_cli_regress_run_passes_against_the_committed_baseline_and_fails_on_a_better_one(tmp_path, one_thread):
+    """One `fitme bench --regress` (3 fits of 15 iterations); then the same numbers against a baseline
+    made 2 px better on one landmark metric must fail naming it, without refitting (compare only)."""
+    import time
+
+    from click.testing import CliRunner
+
+    from fitme_cli.cli import main
+
+    t = time.perf_counter()
+    r = CliRunner().invoke(main, ["bench", "-o", str(tmp_path / "out"), "--regress", str(BASELINE), "--threads", "1"])
+    seconds = time.perf_counter() - t
+    assert r.exit_code == 0, r.output
+    assert "every metric within tolerance" in r.output and "synthetic_02: landmark_px" in r.output
+    assert seconds < 90, f"the regression run took {seconds:.0f} s; CI's budget is 90 s"
+    current = json.loads((tmp_path / "out" / "regress.json").read_text())
+    doc = read_baseline(BASELINE, RegressSettings())
+    doc["subjects"]["synthetic_02"]["landmark_px"] = current["synthetic_02"]["landmark_px"] - 2.0
+    regs = compare(current, doc)
+    assert [(x.subject, x.metric) for x in regs] == [("synthetic_02", "landmark_px")]
+
+
+def test_cli_rejects_update_baseline_without_regress(tmp_path):
+    from click.testing import CliRunner
+
+    from fitme_cli.cli import main
+
+    r = CliRunner().invoke(main, ["bench", "-o", str(tmp_path), "--update-baseline"])
+    assert r.exit_code == 2 and "--update-baseline needs --regress" in r.output
