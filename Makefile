@@ -49,8 +49,7 @@ bench: setup
 
 # the stability suite (docs/benchmarks.md): the renderer's hard cases and whole fits of hard photos (yaw 80,
 # side light, dark, overexposed, sunglasses, tiny face, JPEG q5, grayscale) must stay finite and converge.
-# pytest is the gate (a known bug is xfailed there); then the table, whose exit status is ignored ("-")
-# because it reports that known failure too
+# pytest is the gate; then the table (its exit status is ignored: pytest already judged)
 STABILITY_DIR ?= out/stability
 stability: setup
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q tests/test_render_stability.py tests/test_stability_fit.py

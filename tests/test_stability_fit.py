@@ -14,7 +14,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 # a real bug this suite found: a face spanning < ~1 degree (a small face through a long lens) makes
 # OpenCV's SQPnP in fitting/pose.py initial_camera assert (cv2.error) instead of fitting or failing cleanly
-KNOWN_FAILURES = {"tiny face, telephoto": "initial_camera: cv2.error from SQPnP when the face spans < ~1 degree"}
+KNOWN_FAILURES: dict[str, str] = {}  # case -> why it fails (strict: an entry that starts passing fails the test)
 
 
 @pytest.fixture(scope="module")

@@ -30,9 +30,15 @@ def initial_camera(landmarks_px: np.ndarray, model_points: np.ndarray, width: in
         raise ValueError(f"need at least 6 landmarks for the pose, got {len(pts2)}")
     cx, cy = (width / 2, height / 2) if principal is None else (float(principal[0]), float(principal[1]))
     k = np.array([[focal_px, 0, cx], [0, focal_px, cy], [0, 0, 1]], np.float64)
-    ok, rvec, tvec = cv2.solvePnP(pts3, pts2, k, None, flags=cv2.SOLVEPNP_SQPNP)
-    if not ok:
-        raise ValueError("PnP failed for these landmarks")
+    try:
+        ok, rvec, tvec = cv2.solvePnP(pts3, pts2, k, None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:  # SQPnP asserts when the face spans < ~1 degree (telephoto): nearly orthographic
+        ok = False
+    if not ok or tvec[2, 0] <= 0:
+        rvec, tvec = _weak_perspective_start(pts2, pts3, focal_px, cx, cy)
+        ok, rvec, tvec = cv2.solvePnP(pts3, pts2, k, None, rvec, tvec, useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            raise ValueError("PnP failed for these landmarks")
     rvec, tvec = cv2.solvePnPRefineLM(pts3, pts2, k, None, rvec, tvec)
     rot, _ = cv2.Rodrigues(rvec)
     if tvec[2, 0] <= 0:  # a mirror solution behind the camera: never a real face
@@ -40,3 +46,17 @@ def initial_camera(landmarks_px: np.ndarray, model_points: np.ndarray, width: in
     t = torch.tensor
     return Camera(t([[focal_px, focal_px]]), t([[cx, cy]]), t(rot[None], dtype=torch.float32),
                   t(tvec.reshape(1, 3), dtype=torch.float32), width, height)
+
+
+def _weak_perspective_start(pts2: np.ndarray, pts3: np.ndarray, focal_px: float, cx: float, cy: float):
+    """A frontal pose at the distance where the model's landmarks are as wide as the detected ones:
+    a start for iterative PnP where SQPnP cannot work."""
+    rot = np.diag([1.0, -1.0, -1.0])  # render.camera.frontal_rotation: the face toward the camera
+    rvec, _ = cv2.Rodrigues(rot)
+    spread3 = np.ptp(pts3[:, :2], axis=0).max()
+    spread2 = max(np.ptp(pts2, axis=0).max(), 1e-6)
+    z = focal_px * spread3 / spread2
+    c3 = rot @ pts3.mean(0)
+    c2 = pts2.mean(0)
+    tvec = np.array([(c2[0] - cx) * (z + c3[2]) / focal_px - c3[0], (c2[1] - cy) * (z + c3[2]) / focal_px - c3[1], z])
+    return rvec, tvec.reshape(3, 1)
