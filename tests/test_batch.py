@@ -94,12 +94,24 @@ def test_batch_runs_in_parallel_survives_failures_and_resumes(batch_input, tmp_p
     assert (out / "alice" / "avatar" / "avatar.json").stat().st_mtime_ns == before
     rows = {row["subject"]: row["status"] for row in csv.DictReader((out / "summary.csv").read_text().splitlines())}
     assert rows == {"alice": "skipped-done", "bob": "skipped-done", "carl": "skipped-failed"}
-    # a subject killed in flight has no status.json: only it runs again; --retry-failed retries carl
+    # a subject killed before its status.json was written: only it runs again; --retry-failed retries carl
     (out / "bob" / "status.json").unlink()
+    assert (out / "bob" / ".fitme-batch").is_file()
     r = CliRunner().invoke(main, args + ["--retry-failed"])
     rows = {row["subject"]: row["status"] for row in csv.DictReader((out / "summary.csv").read_text().splitlines())}
     assert rows == {"alice": "skipped-done", "bob": "done", "carl": "failed"}
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no work folders left
+
+
+def test_batch_never_replaces_a_folder_it_did_not_write(batch_input, tmp_path):
+    out = tmp_path / "out"
+    (out / "alice").mkdir(parents=True)
+    (out / "alice" / "notes.txt").write_text("mine")
+    m = tmp_path / "one.csv"
+    m.write_text(f"subject,photos,iterations\nalice,{batch_input / 'in' / 'alice' / 'portrait.jpg'},2\n")
+    r = CliRunner().invoke(main, ["batch", str(m), "-o", str(out), "--preset", "fast"])
+    assert r.exit_code == 1 and "not written by fitme batch" in (out / "summary.csv").read_text()
+    assert (out / "alice" / "notes.txt").read_text() == "mine"
 
 
 def test_batch_refuses_bad_arguments(batch_input, tmp_path):

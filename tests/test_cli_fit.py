@@ -153,3 +153,9 @@ def test_fit_errors(tmp_path):
         assert r.exit_code == 25 and "CUDA" in r.output
     r = CliRunner().invoke(main, ["fit", str(blank), "-o", str(blank)])
     assert r.exit_code == 17
+    # --force replaces an avatar, never a directory of other files
+    docs = tmp_path / "documents"
+    docs.mkdir()
+    (docs / "thesis.tex").write_text("precious")
+    r = CliRunner().invoke(main, ["fit", str(blank), "-o", str(docs), "--force"])
+    assert r.exit_code == 17 and "not an avatar" in r.output and (docs / "thesis.tex").read_text() == "precious"

@@ -82,6 +82,7 @@ def _fit_command(photos: list[Path], avatar: Path, eff: dict, threads: int) -> l
 def _run_in(work: Path, photos: list[Path], eff: dict, threads: int, timeout_s: float) -> dict:
     """Fit (and export) into ``work``; returns the status record (without the key)."""
     t0 = time.perf_counter()
+    (work / _MARKER).write_text("written by fitme batch\n")
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
     log = work / "fit.log"
     status = {"status": "failed", "error": None, "exit_code": None}
@@ -163,9 +164,22 @@ def _result(name: str, status: dict, photos: int, skipped: bool) -> SubjectResul
                          status.get("landmark_px"), photos, status.get("error"), status.get("key", ""))
 
 
+_MARKER = ".fitme-batch"  # in every subject folder the batch writes, before status.json exists
+
+
+def _foreign(out: Path) -> bool:
+    """A folder in the way that the batch did not write (no marker, no status.json, not empty): never
+    replaced. A subject killed between moving its folder into place and writing status.json has the marker."""
+    return (out.is_dir() and not (out / "status.json").is_file() and not (out / _MARKER).is_file()
+            and any(out.iterdir()))
+
+
 def run_subject(subject: Subject, key: str, s: BatchSettings, out_root: Path) -> SubjectResult:
     """Run one subject on this machine into OUT_ROOT/NAME (replaced), status.json last."""
     out = Path(out_root) / subject.name
+    if _foreign(out) or (out.exists() and not out.is_dir()):
+        return SubjectResult(subject.name, "failed", 0.0, None, None, len(subject.photos),
+                             f"{out} exists and was not written by fitme batch; move it away", key)
     work = Path(tempfile.mkdtemp(prefix=f".{subject.name}.", suffix=".tmp", dir=out_root))
     try:
         status = _run_in(work, list(subject.photos), effective_settings(subject, s), _threads(s), s.timeout_s)
@@ -295,6 +309,10 @@ def run_ray(subjects: list[Subject], keys: list[str], s: BatchSettings, out_root
                 if unreadable:
                     status["unreadable_photos"] = unreadable
                 out = Path(out_root) / subj.name
+                if _foreign(out) or (out.exists() and not out.is_dir()):
+                    on_result(SubjectResult(subj.name, "failed", 0.0, None, None, len(subj.photos),
+                                            f"{out} exists and was not written by fitme batch; move it away", key))
+                    continue
                 work = Path(tempfile.mkdtemp(prefix=f".{subj.name}.", suffix=".tmp", dir=out_root))
                 if data:
                     with tarfile.open(fileobj=io.BytesIO(data)) as tar:

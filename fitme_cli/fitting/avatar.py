@@ -77,8 +77,12 @@ def check_output_dir(out_dir: Path, inputs: list[Path], force: bool) -> None:
     for p in inputs:
         if p.exists() and (p.resolve() == resolved or resolved in p.resolve().parents):
             raise OutputNotWritable(f"the avatar directory would contain or replace the input {p}", out_dir)
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not force:
-        raise OutputNotWritable("the directory exists and is not empty; pass --force to replace it", out_dir)
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        if not (out_dir / "avatar.json").is_file():
+            # --force replaces the whole directory: never one that holds something other than an avatar
+            raise OutputNotWritable("the directory holds files and is not an avatar; choose a new or empty directory", out_dir)
+        if not force:
+            raise OutputNotWritable("the directory holds an avatar; pass --force to replace it", out_dir)
     parent = resolved.parent
     if not parent.exists():
         try:
