@@ -88,7 +88,7 @@ def pareto_front(times: list[float], errors: list[float]) -> list[int]:
 
 def pareto_plots(summaries: list[VariantSummary], path: Path,
                  metrics: tuple[str, ...] = ("landmark_px", "shape_mm", "albedo_delta_e", "identity_sim", "photometric"),
-                 title: str = "fitme bench: accuracy vs time") -> Path:
+                 title: str = "fitme bench: accuracy vs time", threads: int = 1) -> Path:
     """One panel per metric: every variant at (median fit time, median metric), the Pareto front joined."""
     import matplotlib
 
@@ -110,7 +110,7 @@ def pareto_plots(summaries: list[VariantSummary], path: Path,
                 ax.annotate(s.variant, (t[i], y[i]), fontsize=6, xytext=(3, 2), textcoords="offset points")
         if front:
             ax.plot([t[i] for i in front], [y[i] for i in front], "r--", lw=1)
-        ax.set_xlabel("median fit time, s (1 thread)")
+        ax.set_xlabel(f"median fit time, s ({threads} thread{'s' if threads != 1 else ''})")
         ax.set_ylabel(m + (" (higher better)" if higher else " (lower better)"))
         ax.grid(alpha=0.3)
     fig.suptitle(title + " — red: Pareto front; squares: 3 views")

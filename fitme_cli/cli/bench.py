@@ -127,7 +127,7 @@ def _sweep(out_dir: Path, quick: bool, photos_dir: Path | None, subjects: int | 
     results = run_sweep(vs, dirs, out_dir / "runs", threads, repeats, log=_log)
     write_csv(results, out_dir / "results.csv")
     summaries = summarise(results)
-    pareto_plots(summaries, out_dir / "pareto.png")
+    pareto_plots(summaries, out_dir / "pareto.png", threads=threads)
     fit_people = {"astronaut"} | ({p.name for p in photos_dir.iterdir() if p.is_dir()} if photos_dir else set())
     if not quick:
         fit_people |= {"grace_hopper", "camera"}

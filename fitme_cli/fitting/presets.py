@@ -24,9 +24,10 @@ class FitPreset:
 PRESETS = {
     # the paper's 200 + 20 iterations (main text) at 256^2 (it renders 512^2 on a GPU)
     "default": FitPreset("default", 200, 20, 256, 0.4, 128, True),
-    # 30 iterations at 128^2, 60 % of them on 128^2 maps, no tuning: a preview in < 15 s
+    # 30 iterations at 128^2 on full maps (no coarse phase: it saved no time here and cost accuracy,
+    # docs/benchmarks.md), no tuning: a preview in < 15 s
     # (12 MP photo, 2 cores: 50 iterations took 16.1 s, 40 took 14.6-16.0 s; docs/fitting.md)
-    "fast": FitPreset("fast", 30, 0, 128, 0.6, 128, False),
+    "fast": FitPreset("fast", 30, 0, 128, 0.0, 128, False),
     # the supplementary's 250 + 30, rendered at the paper's 512^2
     "best": FitPreset("best", 250, 30, 512, 0.3, 128, True),
 }
