@@ -103,3 +103,25 @@ def test_effect_selection_runs_at_the_coarse_switch_and_user_overrides_win(model
     assert res.effects.multi_light == (r["multi_light"] < 0.95 * r["base"])
     assert res.lights.count == (2 if res.effects.multi_light else 1)
     assert all(np.isfinite(list(h.values())).all() for h in res.history)
+
+
+@pytest.mark.parametrize("forced", [("sh_ambient",), ("multi_light",), ("sh_ambient", "multi_light")])
+def test_effects_forced_without_the_selector_get_their_lights(models_root, forced):
+    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+    from fitme_cli.shape.model import load_shape_model
+
+    torch.manual_seed(3)
+    sm = load_shape_model(models_root)
+    G = Generator(GanSettings(resolution=16, branch_resolution=16, channel_base=64, channel_max=16, z_dim=16, w_dim=16))
+    lights = Lights(torch.full((1, 3), 0.5), torch.tensor([[[0.0, 0.0, 1.0]]]), torch.full((1, 1, 3), 0.5))
+    with torch.no_grad():
+        maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
+    p, _, _ = _synthetic_photo(sm, 64, maps, lights)
+    s = InversionSettings(iterations=3, render_size=64, coarse_resolution=8, select_effects=False,
+                          effects=Effects(specular=False, subsurface=False), forced_effects=tuple((f, True) for f in forced),
+                          lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4))
+    res = invert([p], G, sm, load_dlib_resnet(models_root), sm.landmarks, np.arange(10), s)
+    assert all(getattr(res.effects, f) for f in forced)
+    assert (res.lights.sh is not None) == ("sh_ambient" in forced)
+    assert res.lights.count == (2 if "multi_light" in forced else 1)
+    assert all(np.isfinite(list(h.values())).all() for h in res.history)

@@ -278,6 +278,19 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     effects = _base_effects(s)
     choice, residuals = None, {}
     select_at = max(1, n_coarse) if s.select_effects and s.iterations > 1 else -1
+    if effects.sh_ambient or effects.multi_light:  # forced without the selector: their lights must exist
+        new = []
+        if effects.sh_ambient:
+            sh0 = torch.zeros(n, 9, 3, device=dev)
+            sh0[:, 0] = ambient.detach() * 2 * float(np.sqrt(np.pi))  # the constant ambient as an environment
+            extra["sh"] = sh0.requires_grad_(True)
+            new.append(extra["sh"])
+        if effects.multi_light:  # a fill light from the camera's left
+            fill = torch.nn.functional.normalize(light_dir.detach() - 1.5 * pb.rot0[:, 0, :], dim=-1)
+            extra["dir2"] = fill.clone().requires_grad_(True)
+            extra["colour2"] = torch.full((n, 3), 0.3, device=dev, requires_grad=True)
+            new += [extra["dir2"], extra["colour2"]]
+        opt.add_param_group({"params": new, "lr": s.lr})
 
     def lights_now(d2=None, c2=None, sh=None):
         d2, c2, sh = d2 if d2 is not None else extra.get("dir2"), c2 if c2 is not None else extra.get("colour2"), sh if sh is not None else extra.get("sh")
