@@ -202,6 +202,13 @@ def _check_finite(total: torch.Tensor, terms: dict[str, torch.Tensor], it: int) 
         raise FloatingPointError(f"non-finite loss at iteration {it}: {bad}")
 
 
+def _sh_from_ambient(ambient: torch.Tensor) -> torch.Tensor:
+    """(P, 3) constant ambient -> (P, 9, 3) SH irradiance coefficients of the same light (Y_00 only)."""
+    sh = torch.zeros(ambient.shape[0], 9, 3, dtype=ambient.dtype, device=ambient.device)
+    sh[:, 0] = ambient * 2 * float(np.sqrt(np.pi))
+    return sh
+
+
 def _base_effects(s: InversionSettings) -> Effects:
     forced = dict(s.forced_effects)
     if not s.select_effects:
@@ -281,9 +288,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     if effects.sh_ambient or effects.multi_light:  # forced without the selector: their lights must exist
         new = []
         if effects.sh_ambient:
-            sh0 = torch.zeros(n, 9, 3, device=dev)
-            sh0[:, 0] = ambient.detach() * 2 * float(np.sqrt(np.pi))  # the constant ambient as an environment
-            extra["sh"] = sh0.requires_grad_(True)
+            extra["sh"] = _sh_from_ambient(ambient.detach()).requires_grad_(True)
             new.append(extra["sh"])
         if effects.multi_light:  # a fill light from the camera's left
             fill = torch.nn.functional.normalize(light_dir.detach() - 1.5 * pb.rot0[:, 0, :], dim=-1)
@@ -320,9 +325,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         c2 = c2.requires_grad_(True)
         residuals["multi_light"] = _fit_candidate(pb, mp, *frozen, cam, lambda: lights_now(d2=d2, c2=c2), [d2, c2],
                                                   replace(effects, multi_light=True), s.selection_steps)
-        sh0 = torch.zeros(n, 9, 3, device=dev)
-        sh0[:, 0] = ambient.detach() * 2 * float(np.sqrt(np.pi))  # the constant ambient as an environment
-        sh = sh0.clone().requires_grad_(True)
+        sh = _sh_from_ambient(ambient.detach()).requires_grad_(True)
         residuals["sh_ambient"] = _fit_candidate(pb, mp, *frozen, cam, lambda: lights_now(sh=sh), [sh],
                                                  replace(effects, sh_ambient=True), s.selection_steps)
         face_px = float(np.median([np.ptp(p.landmarks[:, 0]) * abs(p.to_photo[0, 0]) for p in photos]))
