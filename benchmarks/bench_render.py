@@ -60,6 +60,9 @@ def main() -> None:
     ap.add_argument("--sizes", default="256,512")
     args = ap.parse_args()
     warnings.filterwarnings("ignore", category=UserWarning)
+    from fitme_cli.ops.memory import retain_freed_memory
+
+    retain_freed_memory()  # as the fitme commands do (fitme_cli/ops/memory.py)
     rows = []
     for size in (int(s) for s in args.sizes.split(",")):
         sm, r, out, maps, cam, lights = scene(size)

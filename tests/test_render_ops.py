@@ -403,6 +403,35 @@ def test_bilinear_lookup_kernel_matches_sample_texture_and_gradcheck():
     assert torch.autograd.gradcheck(lambda t, u: bilinear_lookup(t, bi, u), (tg, uvk))
 
 
+def test_bilinear_lookup_of_several_maps_matches_one_concatenated_texture():
+    """Maps passed separately (one shared by the batch, one without a gradient) give what the
+    concatenated texture gives: values and gradients."""
+    from fitme_cli.render._kernels import bilinear_lookup
+
+    g = torch.Generator().manual_seed(4)
+    a = torch.rand(2, 3, 9, 9, generator=g, dtype=torch.float64)
+    s = torch.rand(1, 1, 9, 9, generator=g, dtype=torch.float64)  # shared by both images
+    n = torch.rand(2, 3, 9, 9, generator=g, dtype=torch.float64)
+    uv = torch.rand(50, 2, generator=g, dtype=torch.float64) * 1.2 - 0.1
+    bidx = torch.randint(0, 2, (50,), generator=g)
+    w = torch.randn(50, 7, generator=g, dtype=torch.float64)
+    cat = torch.cat([a, s.expand(2, -1, -1, -1), n], 1).requires_grad_()
+    u_ref = uv.clone().requires_grad_()
+    ref = bilinear_lookup(cat, bidx, u_ref)
+    (ref * w).sum().backward()
+    maps = [a.clone().requires_grad_(), s.clone().requires_grad_(), n.clone()]
+    u = uv.clone().requires_grad_()
+    out = bilinear_lookup(maps, bidx, u)
+    (out * w).sum().backward()
+    torch.testing.assert_close(out, ref, rtol=0, atol=0)
+    torch.testing.assert_close(u.grad, u_ref.grad, rtol=0, atol=1e-12)
+    torch.testing.assert_close(maps[0].grad, cat.grad[:, :3], rtol=0, atol=1e-12)
+    torch.testing.assert_close(maps[1].grad, cat.grad[:, 3:4].sum(0, keepdim=True), rtol=0, atol=1e-12)
+    assert maps[0].grad.is_contiguous() and maps[2].grad is None
+    with pytest.raises(ValueError, match="maps"):
+        bilinear_lookup([a, torch.rand(2, 1, 8, 8, dtype=torch.float64)], bidx, uv)
+
+
 def test_gather_interpolate_sparse_kernels_gradcheck():
     from fitme_cli.ops.sparse import sparse_apply
     from fitme_cli.render._kernels import gather_rows, interpolate_rows
@@ -705,3 +734,125 @@ def test_fused_specular_hard_cases_are_finite():
     x["d"][0, 0] = torch.tensor([0, 0, 1.0], dtype=torch.float64)  # head-on: n.h = 1 exactly at the clamp's top
     out = specular_pixels(*[x[k] for k in ("nts", "nrm", "tan", "p", "eye", "d", "c")], torch.tensor([1e4], dtype=torch.float64), None, x["bi"])
     assert torch.isfinite(out).all()
+
+
+def _aa_scene(batch=2, h=48, w=48):
+    """A tilted bump (self-occluding folds) in front of which floats a small square, per image a different
+    tilt: silhouettes over the background and over other surfaces. float64 px (B, V, 3), faces, frags."""
+    verts, _, _, faces, _, _ = bump_mesh(n=12, size=40.0, height=22.0)
+    pxs = []
+    for k in range(batch):
+        a = 0.9 + 0.25 * k
+        rot = torch.tensor([[1.0, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]], dtype=torch.float64)
+        v = verts[0] @ rot.T
+        pxs.append(torch.stack([v[:, 0] * 0.9 + w / 2 + 0.137 + 0.37 * k, -v[:, 1] * 0.9 + h / 2 + 0.061, 200 - v[:, 2]], 1))
+    sq, sq_faces = _square(20.3, 6.2, 29.7, 15.6, z=150.0)
+    px = torch.cat([torch.stack(pxs), sq.expand(batch, -1, -1)], 1)
+    faces = torch.cat([faces, sq_faces + verts.shape[1]])
+    return px, faces, rasterize(px, faces, h, w)
+
+
+def test_antialias_numba_matches_torch_reference_values_and_gradients():
+    from fitme_cli.render.antialias import _antialias_torch
+
+    px, faces, frags = _aa_scene()
+    adj = face_adjacency(faces)
+    g = torch.Generator().manual_seed(3)
+    color = torch.rand(px.shape[0], 3, 48, 48, generator=g, dtype=torch.float64) * frags.mask[:, None]
+    depth = torch.full(frags.triangle.shape, float("inf"), dtype=torch.float64)
+    bary = barycentrics(px, faces, frags)
+    z = interpolate(px[..., 2:], faces, frags, bary)[:, 0]
+    depth[frags.index[:, 0], frags.index[:, 1], frags.index[:, 2]] = z.detach()
+    weight = torch.rand(color.shape, generator=g, dtype=torch.float64)
+    outs, grads = [], []
+    for fn in (antialias, _antialias_torch):
+        c, p = color.clone().requires_grad_(), px.clone().requires_grad_()
+        out = fn(c, frags, p, faces, adj, depth)
+        (out * weight).sum().backward()
+        outs.append(out.detach())
+        grads.append((c.grad, p.grad))
+    changed = (outs[1] != color).any(1)
+    assert changed.sum() > 40 and changed[:, 8:20, 18:32].any()  # the outline and the square over the bump
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=1e-12)
+    torch.testing.assert_close(grads[0][0], grads[1][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(grads[0][1], grads[1][1], rtol=1e-9, atol=1e-9)
+    assert grads[0][1][..., :2].abs().sum() > 0 and grads[0][1][..., 2].abs().max() == 0
+
+
+def test_antialias_gradcheck_float64():
+    px, faces, frags = _aa_scene(batch=1, h=40, w=40)
+    adj = face_adjacency(faces)
+    color = (torch.rand(1, 2, 40, 40, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+             * frags.mask[:, None]).requires_grad_()
+    depth = torch.where(frags.mask, torch.tensor(100.0, dtype=torch.float64), torch.tensor(float("inf"), dtype=torch.float64))
+    depth = depth + frags.triangle.to(torch.float64) * 1e-3  # the square is later in faces: behind, as drawn
+    # px moves by eps along edges without changing which pixels are covered (the function is smooth there)
+    p = px.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda c, q: antialias(c, frags, q, faces, adj, depth), (color, p), eps=1e-7, atol=1e-5)
+
+
+def test_antialias_rejects_bad_shapes():
+    px, faces, frags = _aa_scene(batch=1, h=40, w=40)
+    with pytest.raises(ValueError, match="color"):
+        antialias(torch.zeros(40, 40), frags, px, faces, face_adjacency(faces), torch.zeros(1, 40, 40))
+
+
+@pytest.mark.parametrize("perspective", [True, False])
+def test_barycentrics_numba_matches_torch_reference(perspective):
+    from fitme_cli.render.raster import _barycentrics_torch
+
+    px, faces, frags = _aa_scene()
+    px = px.clone()
+    px[1, :, 2] += torch.linspace(0, 60, px.shape[1], dtype=torch.float64)  # depth varying across triangles
+    weight = torch.rand(len(frags.face), 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    res = []
+    for fn in (barycentrics, _barycentrics_torch):
+        p = px.clone().requires_grad_()
+        w = fn(p, faces, frags, perspective)
+        (w * weight).sum().backward()
+        res.append((w.detach(), p.grad))
+    torch.testing.assert_close(res[0][0], res[1][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(res[0][1], res[1][1], rtol=1e-9, atol=1e-9)
+    assert res[0][1][..., 2].abs().sum() > 0 if perspective else res[0][1][..., 2].abs().max() == 0
+
+
+def test_light_visibility_numba_matches_reference():
+    """The fused shadow pass (projection, depth map, 3x3 PCF per vertex, lights in parallel) against the
+    step-by-step torch/numpy version, on a bump that shadows its own flank under grazing lights."""
+    from fitme_cli.render.lights import Lights
+    from fitme_cli.render.shadows import _light_visibility_ref, light_visibility
+
+    verts, _, _, faces, _, _ = bump_mesh(n=40, size=60.0, height=30.0)
+    verts = torch.cat([verts, verts + torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64)])  # batch 2
+    d = torch.nn.functional.normalize(torch.tensor([[[1.0, 0.1, 0.35], [0.0, 1.0, 0.2], [-0.3, 0.2, 1.0]]] * 2,
+                                                   dtype=torch.float64), dim=-1)
+    lights = Lights(torch.full((2, 3), 0.2, dtype=torch.float64), d, torch.ones(2, 3, 3, dtype=torch.float64))
+    got = light_visibility(verts, faces, lights, 96)
+    want = _light_visibility_ref(verts, faces, lights, 96)
+    assert got.shape == (2, 3, verts.shape[1]) and got.dtype == torch.float64
+    assert (want < 0.5).float().mean() > 0.05  # the grazing lights do cast shadows
+    differ = (got - want).abs() > 1e-9
+    assert differ.float().mean() < 2e-3  # float rounding may flip a PCF sample right at the bias
+    assert (got - want).abs().max() <= 1 / 9 + 1e-9
+    with pytest.raises(ValueError, match="vertices"):
+        light_visibility(verts[0], faces, lights, 96)
+
+
+def test_srgb_kernel_matches_torch_reference_and_gradcheck():
+    from fitme_cli.render.shading import _linear_to_srgb_torch, linear_to_srgb
+
+    x = torch.cat([torch.linspace(-0.5, 1.5, 997, dtype=torch.float64), torch.tensor([0.0, 0.0031308, 1.0], dtype=torch.float64)])
+    x = x.view(4, 250)
+    g = torch.randn(4, 250, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    res = []
+    for fn in (linear_to_srgb, _linear_to_srgb_torch):
+        xx = x.clone().requires_grad_()
+        y = fn(xx)
+        (y * g).sum().backward()
+        res.append((y.detach(), xx.grad))
+    assert res[0][0].shape == (4, 250)
+    torch.testing.assert_close(res[0][0], res[1][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(res[0][1], res[1][1], rtol=1e-12, atol=1e-12)
+    assert linear_to_srgb(torch.tensor([0.0, 1.0, 0.214])).tolist() == pytest.approx([0.0, 1.0, 0.5], abs=1e-3)
+    inner = (torch.rand(40, dtype=torch.float64) * 0.9 + 0.05).requires_grad_()  # away from the kinks
+    assert torch.autograd.gradcheck(linear_to_srgb, (inner,))

@@ -3,9 +3,9 @@ preset with a small budget, and compare every accuracy metric with a committed b
 
 A metric regresses when it is worse than the baseline by more than ``max(abs, rel * |baseline|)``
 (``TOLERANCES``; "worse" is up for errors, down for the identity similarity). On one machine at one
-thread the fit is deterministic, so the tolerances only have to absorb BLAS / onnxruntime / CPU
-differences between machines, not run-to-run noise; they are still tight enough that a real loss of
-accuracy (a broken loss term, a wrong learning rate) fails. Improvements never fail: rewrite the
+thread the fit is deterministic, but a 15-iteration fit is chaotic across machines and thread counts
+(see ``TOLERANCES``), so the tolerances are wide: they catch a real loss of accuracy (a broken loss
+term, a wrong learning rate), not drift of tens of percent. Improvements never fail: rewrite the
 baseline on purpose with ``--update-baseline``."""
 
 from __future__ import annotations
@@ -31,16 +31,23 @@ class Tolerance:
         return max(self.abs, self.rel * abs(baseline))
 
 
+# Measured spread of one 15-iteration fit across machines and thread counts (2026-11-23: the baseline's
+# VM vs a second VM at 1 and 2 threads, same code and vs the next commit's kernels, which only reorder
+# float sums): synthetic_02's landmark error 3.2-6.6 px around a 3.9 px baseline, shape 1.16-1.37 mm,
+# albedo L1 0.028-0.041, ΔE 4.0-5.5, photometric 11.6-15.9 levels, the astronaut's identity 0.22-0.27.
+# A short fit is chaotic: a float rounding difference picks another local minimum. The tolerances
+# absorb that spread; what they catch is breakage (a dropped loss term, a wrong sign or learning rate
+# moves these metrics by multiples, not by tens of percent).
 TOLERANCES: dict[str, Tolerance] = {
-    "landmark_px": Tolerance(0.5, 0.15),
-    "shape_mm": Tolerance(0.05, 0.05),
-    "shape_posed_mm": Tolerance(0.05, 0.05),
-    "albedo_l1": Tolerance(0.005, 0.15),
-    "albedo_delta_e": Tolerance(0.5, 0.15),
-    "albedo_delta_e_gain": Tolerance(0.5, 0.15),
+    "landmark_px": Tolerance(1.5, 0.75),
+    "shape_mm": Tolerance(0.1, 0.25),
+    "shape_posed_mm": Tolerance(0.1, 0.25),
+    "albedo_l1": Tolerance(0.01, 0.5),
+    "albedo_delta_e": Tolerance(1.0, 0.4),
+    "albedo_delta_e_gain": Tolerance(0.75, 0.4),
     "normals_deg": Tolerance(0.05, 0.25),
-    "identity_sim": Tolerance(0.03),
-    "photometric": Tolerance(1.0, 0.10),
+    "identity_sim": Tolerance(0.08),
+    "photometric": Tolerance(2.0, 0.3),
 }
 
 

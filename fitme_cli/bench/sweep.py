@@ -130,6 +130,9 @@ def fit_photos_for(models, truth, variant: Variant):
 def _child(spec_path: Path, out_path: Path) -> None:
     import torch
 
+    from ..ops.memory import retain_freed_memory
+
+    retain_freed_memory()  # as `fitme fit` does
     spec = json.loads(Path(spec_path).read_text())
     torch.set_num_threads(int(spec["threads"]))
     from .run import load_models

@@ -54,3 +54,6 @@ class _Group(click.Group):
 @click.version_option(__version__, prog_name="fitme")
 def main() -> None:
     """fitme: photos of a face to a relightable 3D avatar (FitMe, CVPR 2023), on the CPU."""
+    from ..ops.memory import retain_freed_memory
+
+    retain_freed_memory()  # freed buffers stay mapped: no page faults on each render's gradients

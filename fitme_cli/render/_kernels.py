@@ -12,13 +12,23 @@ import numba
 import numpy as np
 import torch
 
-__all__ = ["interpolate_rows", "gather_rows", "bilinear_lookup", "specular_pixels"]
+__all__ = ["interpolate_rows", "gather_rows", "bilinear_lookup", "specular_pixels", "barycentric_weights", "srgb_encode"]
+
+
+def _buffer(shape, dtype, zero: bool = True) -> np.ndarray:
+    """A numpy view of a torch-allocated array, for kernel outputs handed back to torch. torch's CPU
+    reductions split their vectorised loops by the data's address alignment, so a result in a
+    malloc'd numpy array (16-byte aligned, at an address that varies with heap state and thread
+    timing) sums in a different order from run to run: measured, a fit's landmark error varied
+    3.2-8.5 px between identical runs. torch's allocator aligns to 64 bytes."""
+    t = (torch.zeros if zero else torch.empty)(tuple(shape), dtype=torch.from_numpy(np.empty(0, dtype)).dtype)
+    return t.numpy()
 
 
 @numba.njit(cache=True, nogil=True)
 def _interp_fwd(attr, idx, w, out):
     n, c = out.shape
-    for i in range(n):
+    for i in numba.prange(n):
         for k in range(3):
             r = idx[i, k]
             wk = w[i, k]
@@ -26,10 +36,30 @@ def _interp_fwd(attr, idx, w, out):
                 out[i, j] += wk * attr[r, j]
 
 
+_INTERP_CHUNKS = 4  # backward pixel chunks, each scattering into its own table; summed in order
+
+
 @numba.njit(cache=True, nogil=True)
 def _interp_bwd(attr, idx, w, g, g_attr, g_w, need_attr, need_w):
-    n, c = g.shape
-    for i in range(n):
+    """Chunks of pixels, each with its own attribute-gradient table, added in chunk order (ready for
+    prange, see the note on threads)."""
+    n = g.shape[0]
+    per = (n + _INTERP_CHUNKS - 1) // _INTERP_CHUNKS
+    if need_attr:
+        part = np.zeros((_INTERP_CHUNKS,) + g_attr.shape, g_attr.dtype)
+    else:
+        part = np.zeros((_INTERP_CHUNKS, 1, 1), g_attr.dtype)  # unused
+    for ch in numba.prange(_INTERP_CHUNKS):
+        _interp_bwd_range(attr, idx, w, g, part[ch], g_w, need_attr, need_w, ch * per, min(n, (ch + 1) * per))
+    if need_attr:
+        for ch in range(_INTERP_CHUNKS):
+            g_attr += part[ch]
+
+
+@numba.njit(cache=True, nogil=True)
+def _interp_bwd_range(attr, idx, w, g, g_attr, g_w, need_attr, need_w, start, stop):
+    c = g.shape[1]
+    for i in range(start, stop):
         for k in range(3):
             r = idx[i, k]
             wk = w[i, k]
@@ -47,7 +77,7 @@ class _InterpolateRows(torch.autograd.Function):
     @staticmethod
     def forward(ctx, attr, idx, w):
         a, ix, ww = attr.detach().numpy(), idx.numpy(), w.detach().numpy()
-        out = np.zeros((ix.shape[0], a.shape[1]), a.dtype)
+        out = _buffer((ix.shape[0], a.shape[1]), a.dtype)
         _interp_fwd(a, ix, ww.astype(a.dtype, copy=False), out)
         ctx.save_for_backward(attr, idx, w)
         return torch.from_numpy(out)
@@ -57,8 +87,8 @@ class _InterpolateRows(torch.autograd.Function):
         attr, idx, w = ctx.saved_tensors
         need_attr, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[2]
         a = attr.detach().numpy()
-        g_attr = np.zeros_like(a)
-        g_w = np.zeros(w.shape, a.dtype)
+        g_attr = _buffer(a.shape, a.dtype)
+        g_w = _buffer(w.shape, a.dtype)
         _interp_bwd(a, idx.numpy(), w.detach().numpy().astype(a.dtype, copy=False), np.ascontiguousarray(g.numpy()),
                     g_attr, g_w, need_attr, need_w)
         return (torch.from_numpy(g_attr) if need_attr else None, None,
@@ -91,68 +121,152 @@ def _bilinear_setup(u, v, h, wd):
     return x0, y0, x1, y1, x - x0, y - y0, dx, dy
 
 
+# Up to 4 maps (albedo, specular, normals, shininess) are sampled in one call, each in its own
+# (B, C, R, R) array: no torch.cat of the maps (an 8 MB copy at 512^2) and gradients that come out
+# contiguous per map. The texture gradient loops over channels, each channel's scatter in pixel
+# order (ready for prange over channels, see the note on threads below). Absent maps are (1, 0, 1, 1)
+# placeholders.
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pick(k, t0, t1, t2, t3):
+    if k == 0:
+        return t0
+    if k == 1:
+        return t1
+    if k == 2:
+        return t2
+    return t3
+
+
 @numba.njit(cache=True, nogil=True)
-def _bilinear_fwd(tex, bidx, uv, out):
-    _, c, h, wd = tex.shape
-    for i in range(uv.shape[0]):
-        b = bidx[i]
+def _bilinear_fwd(t0, t1, t2, t3, bidx, uv, out):
+    h, wd = t0.shape[2], t0.shape[3]
+    for i in numba.prange(uv.shape[0]):
         x0, y0, x1, y1, fx, fy, _, _ = _bilinear_setup(uv[i, 0], uv[i, 1], h, wd)
-        for j in range(c):
-            out[i, j] = ((1 - fx) * (1 - fy) * tex[b, j, y0, x0] + fx * (1 - fy) * tex[b, j, y0, x1]
-                         + (1 - fx) * fy * tex[b, j, y1, x0] + fx * fy * tex[b, j, y1, x1])
+        w00, w01, w10, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
+        col = 0
+        for k in range(4):
+            tex = _pick(k, t0, t1, t2, t3)
+            b = bidx[i] if tex.shape[0] > 1 else 0
+            for j in range(tex.shape[1]):
+                out[i, col] = (w00 * tex[b, j, y0, x0] + w01 * tex[b, j, y0, x1]
+                               + w10 * tex[b, j, y1, x0] + w11 * tex[b, j, y1, x1])
+                col += 1
 
 
 @numba.njit(cache=True, nogil=True)
-def _bilinear_bwd(tex, bidx, uv, g, g_tex, g_uv, need_tex, need_uv):
-    _, c, h, wd = tex.shape
-    for i in range(uv.shape[0]):
-        b = bidx[i]
+def _bilinear_bwd_tex(t0, t1, t2, t3, g0, g1, g2, g3, bidx, uv, g, offsets):
+    """g_k (B_k, C_k, R, R) zeros, filled; offsets (5,) first column of each map in g (N, C)."""
+    h, wd = t0.shape[2], t0.shape[3]
+    total = offsets[4]
+    for col in numba.prange(total):
+        k = 0
+        while offsets[k + 1] <= col:
+            k += 1
+        gt = _pick(k, g0, g1, g2, g3)
+        j = col - offsets[k]
+        shared = gt.shape[0] == 1
+        for i in range(uv.shape[0]):
+            gij = g[i, col]
+            if gij == 0.0:
+                continue
+            x0, y0, x1, y1, fx, fy, _, _ = _bilinear_setup(uv[i, 0], uv[i, 1], h, wd)
+            b = 0 if shared else bidx[i]
+            gt[b, j, y0, x0] += (1 - fx) * (1 - fy) * gij
+            gt[b, j, y0, x1] += fx * (1 - fy) * gij
+            gt[b, j, y1, x0] += (1 - fx) * fy * gij
+            gt[b, j, y1, x1] += fx * fy * gij
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear_bwd_uv(t0, t1, t2, t3, bidx, uv, g, g_uv):
+    h, wd = t0.shape[2], t0.shape[3]
+    for i in numba.prange(uv.shape[0]):
         x0, y0, x1, y1, fx, fy, dx, dy = _bilinear_setup(uv[i, 0], uv[i, 1], h, wd)
         gu = 0.0
         gv = 0.0
-        for j in range(c):
-            gij = g[i, j]
-            t00, t01, t10, t11 = tex[b, j, y0, x0], tex[b, j, y0, x1], tex[b, j, y1, x0], tex[b, j, y1, x1]
-            if need_tex:  # g_tex is (B, H, W, C): a pixel's writes stay in 4 cache lines
-                g_tex[b, y0, x0, j] += (1 - fx) * (1 - fy) * gij
-                g_tex[b, y0, x1, j] += fx * (1 - fy) * gij
-                g_tex[b, y1, x0, j] += (1 - fx) * fy * gij
-                g_tex[b, y1, x1, j] += fx * fy * gij
-            if need_uv:
+        col = 0
+        for k in range(4):
+            tex = _pick(k, t0, t1, t2, t3)
+            b = bidx[i] if tex.shape[0] > 1 else 0
+            for j in range(tex.shape[1]):
+                gij = g[i, col]
+                t00, t01, t10, t11 = tex[b, j, y0, x0], tex[b, j, y0, x1], tex[b, j, y1, x0], tex[b, j, y1, x1]
                 gu += gij * ((1 - fy) * (t01 - t00) + fy * (t11 - t10))
                 gv += gij * ((1 - fx) * (t10 - t00) + fx * (t11 - t01))
-        if need_uv:
-            g_uv[i, 0] = gu * dx * wd  # dx/du = W
-            g_uv[i, 1] = -gv * dy * h  # dy/dv = -H
+                col += 1
+        g_uv[i, 0] = gu * dx * wd  # dx/du = W
+        g_uv[i, 1] = -gv * dy * h  # dy/dv = -H
+
+
+# The kernels run serially. Parallel versions (parallel=True: prange over pixels, channels and chunks of
+# pixels with per-chunk sums added in a fixed order) gave bitwise the same render and gradients at 1 and
+# 2 threads and made render + backward ~25 % faster (all effects, 256^2), but whole fits were then not
+# reproducible run to run (one subject's landmark error 2.9-7.5 px), even with numba's pool set to one
+# thread; only a process without numba's thread pool was. Cause not found (2026-11-23): serial until it
+# is. The loops keep ``prange`` (a plain range without parallel=True) and the fixed-order chunked sums,
+# so turning it back on is one flag per kernel.
+
+
+def _four(arrays: list, dtype) -> list:
+    return list(arrays) + [np.zeros((1, 0, 1, 1), dtype)] * (4 - len(arrays))
 
 
 class _BilinearLookup(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, tex, bidx, uv):
-        t, u = tex.detach().numpy(), uv.detach().numpy().astype(tex.numpy().dtype, copy=False)
-        out = np.zeros((u.shape[0], t.shape[1]), t.dtype)
-        _bilinear_fwd(t, bidx.numpy(), u, out)
-        ctx.save_for_backward(tex, bidx, uv)
+    def forward(ctx, bidx, uv, *maps):
+        ts = [m.detach().contiguous().numpy() for m in maps]
+        dt = ts[0].dtype
+        u = uv.detach().numpy().astype(dt, copy=False)
+        out = _buffer((u.shape[0], sum(t.shape[1] for t in ts)), dt, zero=False)
+        _bilinear_fwd(*_four(ts, dt), bidx.numpy(), u, out)
+        ctx.save_for_backward(bidx, uv, *maps)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, g):
-        tex, bidx, uv = ctx.saved_tensors
-        need_tex, need_uv = ctx.needs_input_grad[0], ctx.needs_input_grad[2]
-        t = tex.detach().numpy()
-        b, c, h, w = t.shape
-        g_tex = np.zeros((b, h, w, c), t.dtype) if need_tex else np.zeros((1, 1, 1, 1), t.dtype)
-        g_uv = np.zeros((uv.shape[0], 2), t.dtype)
-        _bilinear_bwd(t, bidx.numpy(), uv.detach().numpy().astype(t.dtype, copy=False), np.ascontiguousarray(g.numpy()),
-                      g_tex, g_uv, need_tex, need_uv)
-        return (torch.from_numpy(g_tex).permute(0, 3, 1, 2) if need_tex else None, None,
-                torch.from_numpy(g_uv).to(uv.dtype) if need_uv else None)
+        bidx, uv, *maps = ctx.saved_tensors
+        ts = [m.detach().contiguous().numpy() for m in maps]
+        dt = ts[0].dtype
+        u = uv.detach().numpy().astype(dt, copy=False)
+        gg = np.ascontiguousarray(g.numpy())
+        need_maps = ctx.needs_input_grad[2:]
+        g_maps = [_buffer(t.shape, dt) for t in ts]
+        offsets = np.zeros(5, np.int64)
+        for k, t in enumerate(ts):
+            offsets[k + 1] = offsets[k] + t.shape[1]
+        offsets[len(ts) + 1:] = offsets[len(ts)]
+        if any(need_maps):
+            gg_masked = gg
+            if not all(need_maps):  # columns of maps without a gradient are zero: the scatter skips them
+                gg_masked = gg.copy()
+                for k, need in enumerate(need_maps):
+                    if not need:
+                        gg_masked[:, offsets[k]:offsets[k + 1]] = 0
+            _bilinear_bwd_tex(*_four(ts, dt), *_four(g_maps, dt), bidx.numpy(), u, gg_masked, offsets)
+        g_uv = None
+        if ctx.needs_input_grad[1]:
+            g_uv = _buffer((u.shape[0], 2), dt)
+            _bilinear_bwd_uv(*_four(ts, dt), bidx.numpy(), u, gg, g_uv)
+            g_uv = torch.from_numpy(g_uv).to(uv.dtype)
+        return (None, g_uv) + tuple(torch.from_numpy(gm) if need else None for gm, need in zip(g_maps, need_maps))
 
 
-def bilinear_lookup(tex: torch.Tensor, batch_index: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """(B, C, H, W) texture at (N, 2) uv of batch elements ``batch_index`` (N,) -> (N, C); the same
-    sampling as ``texture.sample_texture`` (bilinear, texel centres, border clamp)."""
-    return _BilinearLookup.apply(tex.contiguous(), batch_index.contiguous(), uv.contiguous())
+def bilinear_lookup(textures, batch_index: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """One (B, C, H, W) texture, or a sequence of up to 4 (B or 1, C_k, H, W) maps of one size and dtype,
+    at (N, 2) uv of batch elements ``batch_index`` (N,) -> (N, C) or (N, sum C_k), the maps' channels in
+    order; a map of batch 1 is shared by every image. The same sampling as ``texture.sample_texture``
+    (bilinear, texel centres, border clamp)."""
+    maps = [textures] if isinstance(textures, torch.Tensor) else list(textures)
+    if not 1 <= len(maps) <= 4:
+        raise ValueError(f"bilinear_lookup: expected 1 to 4 maps, got {len(maps)}")
+    ref = maps[0]
+    for m in maps:
+        if m.ndim != 4 or m.shape[2:] != ref.shape[2:] or m.dtype != ref.dtype:
+            raise ValueError(f"bilinear_lookup: expected maps (B, C, {ref.shape[2]}, {ref.shape[3]}) of {ref.dtype}, got "
+                             f"{tuple(m.shape)} of {m.dtype}")
+    return _BilinearLookup.apply(batch_index.contiguous(), uv.contiguous(), *(m.contiguous() for m in maps))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -175,7 +289,7 @@ class _GatherRows(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):
         (idx,) = ctx.saved_tensors
-        g_attr = np.zeros(ctx.shape, g.numpy().dtype)
+        g_attr = _buffer(ctx.shape, g.numpy().dtype)
         _gather_bwd(idx.numpy(), np.ascontiguousarray(g.numpy()), g_attr)
         return torch.from_numpy(g_attr), None
 
@@ -225,7 +339,7 @@ def _frame(nts, nrm, tan, i):
 @numba.njit(cache=True, nogil=True)
 def _spec_fwd(nts, nrm, tan, p, eye, d, c, shin, vis, bi, out):
     n_lights = d.shape[1]
-    for i in range(nts.shape[0]):
+    for i in numba.prange(nts.shape[0]):
         b = bi[i]
         nd0, nd1, nd2, _, _, _, _, _, _, _, _, _, _, _, _, ns0, ns1, ns2, _ = _frame(nts, nrm, tan, i)
         v0, v1, v2, _ = _nrm3(eye[b, 0] - p[i, 0], eye[b, 1] - p[i, 1], eye[b, 2] - p[i, 2])
@@ -245,11 +359,36 @@ def _spec_fwd(nts, nrm, tan, p, eye, d, c, shin, vis, bi, out):
             out[i, 2] += lobe * c[b, j, 2]
 
 
+_SPEC_CHUNKS = 16  # the backward's pixel chunks: per-chunk sums of the shared gradients, added in order
+
+
 @numba.njit(cache=True, nogil=True)
 def _spec_bwd(nts, nrm, tan, p, eye, d, c, shin, vis, bi, g,
               g_nts, g_nrm, g_tan, g_p, g_eye, g_d, g_c, g_shin):
+    """The shared gradients (eye, lights, global shininess) are summed per chunk of pixels and the
+    chunks added in a fixed order (ready for prange, see the note on threads)."""
+    n = nts.shape[0]
+    per = (n + _SPEC_CHUNKS - 1) // _SPEC_CHUNKS
+    pe = np.zeros((_SPEC_CHUNKS,) + g_eye.shape, g_eye.dtype)
+    pd = np.zeros((_SPEC_CHUNKS,) + g_d.shape, g_d.dtype)
+    pc = np.zeros((_SPEC_CHUNKS,) + g_c.shape, g_c.dtype)
+    ps = np.zeros(_SPEC_CHUNKS, g_shin.dtype)
+    for ch in numba.prange(_SPEC_CHUNKS):
+        _spec_bwd_range(nts, nrm, tan, p, eye, d, c, shin, vis, bi, g, g_nts, g_nrm, g_tan, g_p,
+                        pe[ch], pd[ch], pc[ch], ps[ch:ch + 1], g_shin, ch * per, min(n, (ch + 1) * per))
+    for ch in range(_SPEC_CHUNKS):
+        g_eye += pe[ch]
+        g_d += pd[ch]
+        g_c += pc[ch]
+        if shin.shape[0] == 1:
+            g_shin[0] += ps[ch]
+
+
+@numba.njit(cache=True, nogil=True)
+def _spec_bwd_range(nts, nrm, tan, p, eye, d, c, shin, vis, bi, g, g_nts, g_nrm, g_tan, g_p,
+                    g_eye, g_d, g_c, g_shin_global, g_shin, start, stop):
     n_lights = d.shape[1]
-    for i in range(nts.shape[0]):
+    for i in range(start, stop):
         b = bi[i]
         nd0, nd1, nd2, rn, a, t0, t1, t2, rt, c0, c1, c2, b0, b1, b2, ns0, ns1, ns2, rs = _frame(nts, nrm, tan, i)
         v0, v1, v2, rv = _nrm3(eye[b, 0] - p[i, 0], eye[b, 1] - p[i, 1], eye[b, 2] - p[i, 2])
@@ -291,7 +430,7 @@ def _spec_bwd(nts, nrm, tan, p, eye, d, c, shin, vis, bi, g,
         if shin.shape[0] > 1:
             g_shin[i] = gs
         else:
-            g_shin[0] += gs
+            g_shin_global[0] += gs
         gvr0, gvr1, gvr2 = _nrm3_bwd(v0, v1, v2, rv, gv0, gv1, gv2)
         g_eye[b, 0] += gvr0
         g_eye[b, 1] += gvr1
@@ -332,7 +471,7 @@ class _Specular(torch.autograd.Function):
     @staticmethod
     def forward(ctx, nts, nrm, tan, p, eye, d, c, shin, vis, bi):
         arrs = [x.detach().numpy() for x in (nts, nrm, tan, p, eye, d, c, shin, vis)]
-        out = np.zeros((nts.shape[0], 3), arrs[0].dtype)
+        out = _buffer((nts.shape[0], 3), arrs[0].dtype)
         _spec_fwd(*arrs, bi.numpy(), out)
         ctx.save_for_backward(nts, nrm, tan, p, eye, d, c, shin, vis, bi)
         return torch.from_numpy(out)
@@ -341,7 +480,7 @@ class _Specular(torch.autograd.Function):
     def backward(ctx, g):
         saved = ctx.saved_tensors
         arrs = [x.detach().numpy() for x in saved[:9]]
-        grads = [np.zeros_like(x) for x in arrs[:8]]
+        grads = [_buffer(x.shape, x.dtype) for x in arrs[:8]]
         _spec_bwd(*arrs, saved[9].numpy(), np.ascontiguousarray(g.numpy()), *grads)
         return tuple(torch.from_numpy(x) if need else None
                      for x, need in zip(grads, ctx.needs_input_grad[:8])) + (None, None)
@@ -358,3 +497,158 @@ def specular_pixels(n_tangent: torch.Tensor, normal: torch.Tensor, tangent: torc
     vis = visibility if visibility is not None else torch.ones(1, 1, dtype=dt)
     args = [x.to(dt).contiguous() for x in (n_tangent, normal, tangent, points, eye, direction, colour, shininess)]
     return _Specular.apply(*args, vis.to(dt).contiguous(), batch_index.contiguous())
+
+
+# --- barycentrics ----------------------------------------------------------------------------------
+# ``raster._barycentrics_torch`` is ~25 ops each way over the covered pixels; one loop each way here.
+# Same formulas, same guards: |area| < 1e-12 -> -1e-12 (no gradient), depth clamped at 1e-6, a
+# near-zero perspective sum leaves the weights unnormalised.
+
+_AREA_MIN = 1e-12
+_Z_MIN = 1e-6
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bary_screen(px, b, f0, f1, f2, qx, qy):
+    ax, ay, bx, by, cx, cy = px[b, f0, 0], px[b, f0, 1], px[b, f1, 0], px[b, f1, 1], px[b, f2, 0], px[b, f2, 1]
+    area = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
+    clamped = abs(area) < _AREA_MIN
+    if clamped:
+        area = -_AREA_MIN
+    e0 = (bx - qx) * (cy - qy) - (cx - qx) * (by - qy)
+    e1 = (cx - qx) * (ay - qy) - (ax - qx) * (cy - qy)
+    return ax, ay, bx, by, cx, cy, area, clamped, e0, e1
+
+
+@numba.njit(cache=True, nogil=True)
+def _bary_fwd(px, tri, index, perspective, out):
+    for n in range(index.shape[0]):
+        b = index[n, 0]
+        qx, qy = index[n, 2] + 0.5, index[n, 1] + 0.5
+        f0, f1, f2 = tri[n, 0], tri[n, 1], tri[n, 2]
+        _, _, _, _, _, _, area, _, e0, e1 = _bary_screen(px, b, f0, f1, f2, qx, qy)
+        w0 = e0 / area
+        w1 = e1 / area
+        w2 = 1.0 - w0 - w1
+        if perspective:
+            w0 /= max(px[b, f0, 2], _Z_MIN)
+            w1 /= max(px[b, f1, 2], _Z_MIN)
+            w2 /= max(px[b, f2, 2], _Z_MIN)
+            s = w0 + w1 + w2
+            if abs(s) > 1e-12:
+                w0, w1, w2 = w0 / s, w1 / s, w2 / s
+        out[n, 0], out[n, 1], out[n, 2] = w0, w1, w2
+
+
+@numba.njit(cache=True, nogil=True)
+def _bary_bwd(px, tri, index, perspective, g, g_px):
+    for n in range(index.shape[0]):
+        b = index[n, 0]
+        qx, qy = index[n, 2] + 0.5, index[n, 1] + 0.5
+        f0, f1, f2 = tri[n, 0], tri[n, 1], tri[n, 2]
+        ax, ay, bx, by, cx, cy, area, clamped, e0, e1 = _bary_screen(px, b, f0, f1, f2, qx, qy)
+        w0 = e0 / area
+        w1 = e1 / area
+        w2 = 1.0 - w0 - w1
+        g0, g1, g2 = g[n, 0], g[n, 1], g[n, 2]
+        if perspective:
+            z0, z1, z2 = px[b, f0, 2], px[b, f1, 2], px[b, f2, 2]
+            zc0, zc1, zc2 = max(z0, _Z_MIN), max(z1, _Z_MIN), max(z2, _Z_MIN)
+            p0, p1, p2 = w0 / zc0, w1 / zc1, w2 / zc2
+            s = p0 + p1 + p2
+            if abs(s) > 1e-12:  # W_k = p_k / s: dL/dp_k = (g_k - sum_j g_j W_j) / s
+                dot = (g0 * p0 + g1 * p1 + g2 * p2) / s
+                g0, g1, g2 = (g0 - dot) / s, (g1 - dot) / s, (g2 - dot) / s
+            if z0 >= _Z_MIN:
+                g_px[b, f0, 2] -= g0 * p0 / zc0
+            if z1 >= _Z_MIN:
+                g_px[b, f1, 2] -= g1 * p1 / zc1
+            if z2 >= _Z_MIN:
+                g_px[b, f2, 2] -= g2 * p2 / zc2
+            g0, g1, g2 = g0 / zc0, g1 / zc1, g2 / zc2
+        # w2 = 1 - w0 - w1
+        d0 = (g0 - g2) / area  # dL/de0
+        d1 = (g1 - g2) / area  # dL/de1
+        da = 0.0 if clamped else -(d0 * w0 + d1 * w1)  # dL/darea, from w = e / area
+        # e0 = (bx - qx)(cy - qy) - (cx - qx)(by - qy); e1 = (cx - qx)(ay - qy) - (ax - qx)(cy - qy)
+        # area = (bx - ax)(cy - ay) - (cx - ax)(by - ay)
+        g_px[b, f0, 0] += -d1 * (cy - qy) + da * (by - cy)
+        g_px[b, f0, 1] += d1 * (cx - qx) + da * (cx - bx)
+        g_px[b, f1, 0] += d0 * (cy - qy) + da * (cy - ay)
+        g_px[b, f1, 1] += -d0 * (cx - qx) - da * (cx - ax)
+        g_px[b, f2, 0] += -d0 * (by - qy) + d1 * (ay - qy) - da * (by - ay)
+        g_px[b, f2, 1] += d0 * (bx - qx) - d1 * (ax - qx) + da * (bx - ax)
+
+
+class _Barycentrics(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, px, tri, index, perspective):
+        p = px.detach().contiguous().numpy()
+        out = _buffer((index.shape[0], 3), p.dtype, zero=False)
+        _bary_fwd(p, tri.numpy(), index.numpy(), perspective, out)
+        ctx.save_for_backward(px, tri, index)
+        ctx.perspective = perspective
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, g):
+        px, tri, index = ctx.saved_tensors
+        p = px.detach().contiguous().numpy()
+        g_px = _buffer(p.shape, p.dtype)
+        _bary_bwd(p, tri.numpy(), index.numpy(), ctx.perspective, np.ascontiguousarray(g.numpy()), g_px)
+        return torch.from_numpy(g_px), None, None, None
+
+
+def barycentric_weights(px: torch.Tensor, tri: torch.Tensor, index: torch.Tensor, perspective: bool) -> torch.Tensor:
+    """px: (B, V, 3) float CPU; tri: (N, 3) int64 vertex ids of each covered pixel's triangle; index: (N, 3)
+    int64 (b, i, j) -> (N, 3) weights of the pixel centres (``raster.barycentrics``)."""
+    return _Barycentrics.apply(px, tri.contiguous(), index.contiguous(), bool(perspective))
+
+
+# --- sRGB encoding -----------------------------------------------------------------------------------
+# ``shading._linear_to_srgb_torch`` is clamp, where, pow (and as many ops back): ~3 ms of a 256^2
+# render + backward. Same function and the same one-sided choices at the kinks (0, 0.0031308, 1).
+
+_SRGB_KNEE = 0.0031308
+
+
+@numba.njit(cache=True, nogil=True)
+def _srgb_fwd(x, out):
+    for i in numba.prange(x.shape[0]):
+        v = min(max(x[i], 0.0), 1.0)
+        out[i] = 12.92 * v if v <= _SRGB_KNEE else 1.055 * v ** (1 / 2.4) - 0.055
+
+
+@numba.njit(cache=True, nogil=True)
+def _srgb_bwd(x, g, out):
+    for i in numba.prange(x.shape[0]):
+        v = x[i]
+        if v < 0.0 or v > 1.0:
+            out[i] = 0.0
+        elif v <= _SRGB_KNEE:
+            out[i] = 12.92 * g[i]
+        else:
+            out[i] = g[i] * (1.055 / 2.4) * v ** (1 / 2.4 - 1.0)
+
+
+class _Srgb(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        a = x.detach().contiguous().view(-1).numpy()
+        out = _buffer(a.shape, a.dtype, zero=False)
+        _srgb_fwd(a, out)
+        ctx.save_for_backward(x)
+        return torch.from_numpy(out).view(x.shape)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        a = x.detach().contiguous().view(-1).numpy()
+        out = _buffer(a.shape, a.dtype, zero=False)
+        _srgb_bwd(a, np.ascontiguousarray(g.numpy()).reshape(-1).astype(a.dtype, copy=False), out)
+        return torch.from_numpy(out).view(x.shape)
+
+
+def srgb_encode(x: torch.Tensor) -> torch.Tensor:
+    """Linear [0, inf) -> sRGB [0, 1], clipped; float32/64 CPU tensors of any shape (``shading.linear_to_srgb``)."""
+    return _Srgb.apply(x)

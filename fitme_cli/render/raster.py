@@ -131,7 +131,19 @@ def rasterize(px: torch.Tensor, faces: torch.Tensor, height: int, width: int, ne
 
 def barycentrics(px: torch.Tensor, faces: torch.Tensor, frags: Fragments, perspective: bool = True) -> torch.Tensor:
     """(N, 3) barycentric weights of each covered pixel's centre, differentiable w.r.t. ``px``.
-    Perspective-correct by default (weights of attributes that vary linearly on the 3D triangle)."""
+    Perspective-correct by default (weights of attributes that vary linearly on the 3D triangle).
+    CPU: a numba loop pair (``_kernels.barycentric_weights``); elsewhere, and as its reference,
+    ``_barycentrics_torch``."""
+    if px.ndim != 3 or px.shape[-1] != 3:
+        raise ValueError(f"barycentrics: expected px of shape (B, V, 3), got {tuple(px.shape)}")
+    if px.device.type == "cpu":
+        from ._kernels import barycentric_weights
+
+        return barycentric_weights(px, faces[frags.face], frags.index, perspective)
+    return _barycentrics_torch(px, faces, frags, perspective)
+
+
+def _barycentrics_torch(px: torch.Tensor, faces: torch.Tensor, frags: Fragments, perspective: bool = True) -> torch.Tensor:
     b, i, j = frags.index.unbind(1)
     v = _gather_corners(px, faces, frags)  # (N, 3 corners, 3)
     q = torch.stack([j, i], 1).to(px.dtype) + 0.5

@@ -119,7 +119,7 @@ class Renderer(nn.Module):
             texture += [maps.specular, maps.normals]
             if shininess_map is not None:
                 texture.append(shininess_map)
-        tex = self._lookup(torch.cat(texture, 1).to(dtype), uv, frags.index[:, 0], b)  # (N, C)
+        tex = self._lookup([t.to(dtype) for t in texture], uv, frags.index[:, 0], b)  # (N, C)
 
         e_pix, z_pix = attrs[:, 0:3], attrs[:, 3]
         diffuse = tex[:, 0:3] * e_pix
@@ -172,15 +172,15 @@ class Renderer(nn.Module):
         return img + (1 - m) * background.permute(0, 3, 1, 2)
 
     @staticmethod
-    def _lookup(texture: torch.Tensor, uv: torch.Tensor, batch_index: torch.Tensor, b: int) -> torch.Tensor:
-        """(B or 1, C, R, R) maps at per-pixel uv (N, 2) of batch elements ``batch_index`` -> (N, C)."""
+    def _lookup(maps: list[torch.Tensor], uv: torch.Tensor, batch_index: torch.Tensor, b: int) -> torch.Tensor:
+        """(B or 1, C_k, R, R) maps at per-pixel uv (N, 2) of batch elements ``batch_index`` -> (N, sum C_k)."""
         import torch.nn.functional as F
 
-        if texture.device.type == "cpu":
+        if maps[0].device.type == "cpu":
             from ._kernels import bilinear_lookup
 
-            bi = batch_index if texture.shape[0] > 1 else torch.zeros_like(batch_index)
-            return bilinear_lookup(texture, bi, uv.to(texture.dtype))
+            return bilinear_lookup(maps, batch_index, uv.to(maps[0].dtype))
+        texture = torch.cat([m.expand(max(x.shape[0] for x in maps), -1, -1, -1) for m in maps], 1)
         grid = torch.stack([uv[:, 0] * 2 - 1, 1 - uv[:, 1] * 2], -1)
         if texture.shape[0] == 1 or b == 1:
             return F.grid_sample(texture[:1], grid[None, None], mode="bilinear", padding_mode="border",

@@ -146,6 +146,15 @@ def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
 
 
 def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
-    """Linear [0, inf) -> sRGB [0, 1] (clipped), with finite gradients at 0."""
+    """Linear [0, inf) -> sRGB [0, 1] (clipped), with finite gradients at 0. CPU float tensors take one
+    numba loop each way (``_kernels.srgb_encode``); ``_linear_to_srgb_torch`` is its reference."""
+    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
+        from ._kernels import srgb_encode
+
+        return srgb_encode(x)
+    return _linear_to_srgb_torch(x)
+
+
+def _linear_to_srgb_torch(x: torch.Tensor) -> torch.Tensor:
     x = x.clamp(0, 1)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
