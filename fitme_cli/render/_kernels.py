@@ -124,7 +124,9 @@ def _bilinear_setup(u, v, h, wd):
 # Up to 4 maps (albedo, specular, normals, shininess) are sampled in one call, each in its own
 # (B, C, R, R) array: no torch.cat of the maps (an 8 MB copy at 512^2) and gradients that come out
 # contiguous per map. The texture gradient loops over channels, each channel's scatter in pixel
-# order (ready for prange over channels, see the note on threads below). Absent maps are (1, 0, 1, 1)
+# order (ready for prange over channels, see the note on threads below): measured 10 ms against 12 ms
+# for one fused pass over the pixels writing every channel and the uv gradient at once (serial, 256^2,
+# 7 channels of 512^2): a channel at a time keeps the scattered writes in one 1 MB plane. Absent maps are (1, 0, 1, 1)
 # placeholders.
 
 
