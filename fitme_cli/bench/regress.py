@@ -32,7 +32,7 @@ class Tolerance:
 
 
 # Measured spread of one 15-iteration fit across machines and thread counts (2026-11-23: the baseline's
-# VM vs a second VM at 1 and 2 threads, same code and vs the next commit's kernels, which only reorder
+# VM vs a second VM at 1 and 2 threads, same code and with this commit's kernels, which only reorder
 # float sums): synthetic_02's landmark error 3.2-6.6 px around a 3.9 px baseline, shape 1.16-1.37 mm,
 # albedo L1 0.028-0.041, ΔE 4.0-5.5, photometric 11.6-15.9 levels, the astronaut's identity 0.22-0.27.
 # A short fit is chaotic: a float rounding difference picks another local minimum. The tolerances

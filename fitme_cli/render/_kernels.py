@@ -16,11 +16,9 @@ __all__ = ["interpolate_rows", "gather_rows", "bilinear_lookup", "specular_pixel
 
 
 def _buffer(shape, dtype, zero: bool = True) -> np.ndarray:
-    """A numpy view of a torch-allocated array, for kernel outputs handed back to torch. torch's CPU
-    reductions split their vectorised loops by the data's address alignment, so a result in a
-    malloc'd numpy array (16-byte aligned, at an address that varies with heap state and thread
-    timing) sums in a different order from run to run: measured, a fit's landmark error varied
-    3.2-8.5 px between identical runs. torch's allocator aligns to 64 bytes."""
+    """A numpy view of a torch-allocated array, for kernel outputs handed back to torch: they get torch's
+    64-byte alignment like every tensor torch makes itself (torch's vectorised CPU loops handle the
+    unaligned head of an array separately), instead of malloc's 16."""
     t = (torch.zeros if zero else torch.empty)(tuple(shape), dtype=torch.from_numpy(np.empty(0, dtype)).dtype)
     return t.numpy()
 
@@ -202,13 +200,11 @@ def _bilinear_bwd_uv(t0, t1, t2, t3, bidx, uv, g, g_uv):
         g_uv[i, 1] = -gv * dy * h  # dy/dv = -H
 
 
-# The kernels run serially. Parallel versions (parallel=True: prange over pixels, channels and chunks of
-# pixels with per-chunk sums added in a fixed order) gave bitwise the same render and gradients at 1 and
-# 2 threads and made render + backward ~25 % faster (all effects, 256^2), but whole fits were then not
-# reproducible run to run (one subject's landmark error 2.9-7.5 px), even with numba's pool set to one
-# thread; only a process without numba's thread pool was. Cause not found (2026-11-23): serial until it
-# is. The loops keep ``prange`` (a plain range without parallel=True) and the fixed-order chunked sums,
-# so turning it back on is one flag per kernel.
+# The kernels run serially. With parallel=True (prange over pixels, channels and pixel chunks whose
+# partial sums are added in a fixed order: bitwise the same at any thread count) numba's default "omp"
+# layer reset OpenMP's thread count when its pool started, raising torch's intra-op threads from 1 to 2
+# under `--threads 1` (fits no longer reproducible); its "workqueue" layer avoided that but was no
+# faster, its threads competing with torch's spinning OpenMP threads (docs/render.md, "Speed").
 
 
 def _four(arrays: list, dtype) -> list:
