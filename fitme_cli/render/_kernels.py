@@ -26,7 +26,7 @@ def _buffer(shape, dtype, zero: bool = True) -> np.ndarray:
 @numba.njit(cache=True, nogil=True)
 def _interp_fwd(attr, idx, w, out):
     n, c = out.shape
-    for i in numba.prange(n):
+    for i in range(n):
         for k in range(3):
             r = idx[i, k]
             wk = w[i, k]
@@ -34,20 +34,22 @@ def _interp_fwd(attr, idx, w, out):
                 out[i, j] += wk * attr[r, j]
 
 
+# The chunked sums below were written for a parallel loop (see the note on threads); they stay because
+# the order of float sums is part of a fit's outcome: the plain loop's order moved the synthetic fits'
+# results across their test bounds (tests/test_fit_synthetic.py), which are calibrated on this one.
 _INTERP_CHUNKS = 4  # backward pixel chunks, each scattering into its own table; summed in order
 
 
 @numba.njit(cache=True, nogil=True)
 def _interp_bwd(attr, idx, w, g, g_attr, g_w, need_attr, need_w):
-    """Chunks of pixels, each with its own attribute-gradient table, added in chunk order (ready for
-    prange, see the note on threads)."""
+    """Chunks of pixels, each with its own attribute-gradient table, added in chunk order."""
     n = g.shape[0]
     per = (n + _INTERP_CHUNKS - 1) // _INTERP_CHUNKS
     if need_attr:
         part = np.zeros((_INTERP_CHUNKS,) + g_attr.shape, g_attr.dtype)
     else:
         part = np.zeros((_INTERP_CHUNKS, 1, 1), g_attr.dtype)  # unused
-    for ch in numba.prange(_INTERP_CHUNKS):
+    for ch in range(_INTERP_CHUNKS):
         _interp_bwd_range(attr, idx, w, g, part[ch], g_w, need_attr, need_w, ch * per, min(n, (ch + 1) * per))
     if need_attr:
         for ch in range(_INTERP_CHUNKS):
@@ -122,7 +124,7 @@ def _bilinear_setup(u, v, h, wd):
 # Up to 4 maps (albedo, specular, normals, shininess) are sampled in one call, each in its own
 # (B, C, R, R) array: no torch.cat of the maps (an 8 MB copy at 512^2) and gradients that come out
 # contiguous per map. The texture gradient loops over channels, each channel's scatter in pixel
-# order (ready for prange over channels, see the note on threads below): measured 10 ms against 12 ms
+# order: measured 10 ms against 12 ms
 # for one fused pass over the pixels writing every channel and the uv gradient at once (serial, 256^2,
 # 7 channels of 512^2): a channel at a time keeps the scattered writes in one 1 MB plane. Absent maps are (1, 0, 1, 1)
 # placeholders.
@@ -142,7 +144,7 @@ def _pick(k, t0, t1, t2, t3):
 @numba.njit(cache=True, nogil=True)
 def _bilinear_fwd(t0, t1, t2, t3, bidx, uv, out):
     h, wd = t0.shape[2], t0.shape[3]
-    for i in numba.prange(uv.shape[0]):
+    for i in range(uv.shape[0]):
         x0, y0, x1, y1, fx, fy, _, _ = _bilinear_setup(uv[i, 0], uv[i, 1], h, wd)
         w00, w01, w10, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
         col = 0
@@ -160,7 +162,7 @@ def _bilinear_bwd_tex(t0, t1, t2, t3, g0, g1, g2, g3, bidx, uv, g, offsets):
     """g_k (B_k, C_k, R, R) zeros, filled; offsets (5,) first column of each map in g (N, C)."""
     h, wd = t0.shape[2], t0.shape[3]
     total = offsets[4]
-    for col in numba.prange(total):
+    for col in range(total):
         k = 0
         while offsets[k + 1] <= col:
             k += 1
@@ -182,7 +184,7 @@ def _bilinear_bwd_tex(t0, t1, t2, t3, g0, g1, g2, g3, bidx, uv, g, offsets):
 @numba.njit(cache=True, nogil=True)
 def _bilinear_bwd_uv(t0, t1, t2, t3, bidx, uv, g, g_uv):
     h, wd = t0.shape[2], t0.shape[3]
-    for i in numba.prange(uv.shape[0]):
+    for i in range(uv.shape[0]):
         x0, y0, x1, y1, fx, fy, dx, dy = _bilinear_setup(uv[i, 0], uv[i, 1], h, wd)
         gu = 0.0
         gv = 0.0
@@ -201,7 +203,7 @@ def _bilinear_bwd_uv(t0, t1, t2, t3, bidx, uv, g, g_uv):
 
 
 # The kernels run serially. With parallel=True (prange over pixels, channels and pixel chunks whose
-# partial sums are added in a fixed order: bitwise the same at any thread count) numba's default "omp"
+# partial sums were added in a fixed order: bitwise the same at any thread count) numba's default "omp"
 # layer reset OpenMP's thread count when its pool started, raising torch's intra-op threads from 1 to 2
 # under `--threads 1` (fits no longer reproducible); its "workqueue" layer avoided that but was no
 # faster, its threads competing with torch's spinning OpenMP threads (docs/render.md, "Speed").
@@ -337,7 +339,7 @@ def _frame(nts, nrm, tan, i):
 @numba.njit(cache=True, nogil=True)
 def _spec_fwd(nts, nrm, tan, p, eye, d, c, shin, vis, bi, out):
     n_lights = d.shape[1]
-    for i in numba.prange(nts.shape[0]):
+    for i in range(nts.shape[0]):
         b = bi[i]
         nd0, nd1, nd2, _, _, _, _, _, _, _, _, _, _, _, _, ns0, ns1, ns2, _ = _frame(nts, nrm, tan, i)
         v0, v1, v2, _ = _nrm3(eye[b, 0] - p[i, 0], eye[b, 1] - p[i, 1], eye[b, 2] - p[i, 2])
@@ -364,14 +366,14 @@ _SPEC_CHUNKS = 16  # the backward's pixel chunks: per-chunk sums of the shared g
 def _spec_bwd(nts, nrm, tan, p, eye, d, c, shin, vis, bi, g,
               g_nts, g_nrm, g_tan, g_p, g_eye, g_d, g_c, g_shin):
     """The shared gradients (eye, lights, global shininess) are summed per chunk of pixels and the
-    chunks added in a fixed order (ready for prange, see the note on threads)."""
+    chunks added in a fixed order (as for ``_interp_bwd``)."""
     n = nts.shape[0]
     per = (n + _SPEC_CHUNKS - 1) // _SPEC_CHUNKS
     pe = np.zeros((_SPEC_CHUNKS,) + g_eye.shape, g_eye.dtype)
     pd = np.zeros((_SPEC_CHUNKS,) + g_d.shape, g_d.dtype)
     pc = np.zeros((_SPEC_CHUNKS,) + g_c.shape, g_c.dtype)
     ps = np.zeros(_SPEC_CHUNKS, g_shin.dtype)
-    for ch in numba.prange(_SPEC_CHUNKS):
+    for ch in range(_SPEC_CHUNKS):
         _spec_bwd_range(nts, nrm, tan, p, eye, d, c, shin, vis, bi, g, g_nts, g_nrm, g_tan, g_p,
                         pe[ch], pd[ch], pc[ch], ps[ch:ch + 1], g_shin, ch * per, min(n, (ch + 1) * per))
     for ch in range(_SPEC_CHUNKS):
@@ -515,7 +517,9 @@ def _bary_screen(px, b, f0, f1, f2, qx, qy):
         area = -_AREA_MIN
     e0 = (bx - qx) * (cy - qy) - (cx - qx) * (by - qy)
     e1 = (cx - qx) * (ay - qy) - (ax - qx) * (cy - qy)
-    return ax, ay, bx, by, cx, cy, area, clamped, e0, e1
+    w0 = e0 / area
+    w1 = e1 / area
+    return ax, ay, bx, by, cx, cy, area, clamped, w0, w1, 1.0 - w0 - w1
 
 
 @numba.njit(cache=True, nogil=True)
@@ -524,10 +528,7 @@ def _bary_fwd(px, tri, index, perspective, out):
         b = index[n, 0]
         qx, qy = index[n, 2] + 0.5, index[n, 1] + 0.5
         f0, f1, f2 = tri[n, 0], tri[n, 1], tri[n, 2]
-        _, _, _, _, _, _, area, _, e0, e1 = _bary_screen(px, b, f0, f1, f2, qx, qy)
-        w0 = e0 / area
-        w1 = e1 / area
-        w2 = 1.0 - w0 - w1
+        w0, w1, w2 = _bary_screen(px, b, f0, f1, f2, qx, qy)[8:]
         if perspective:
             w0 /= max(px[b, f0, 2], _Z_MIN)
             w1 /= max(px[b, f1, 2], _Z_MIN)
@@ -544,10 +545,7 @@ def _bary_bwd(px, tri, index, perspective, g, g_px):
         b = index[n, 0]
         qx, qy = index[n, 2] + 0.5, index[n, 1] + 0.5
         f0, f1, f2 = tri[n, 0], tri[n, 1], tri[n, 2]
-        ax, ay, bx, by, cx, cy, area, clamped, e0, e1 = _bary_screen(px, b, f0, f1, f2, qx, qy)
-        w0 = e0 / area
-        w1 = e1 / area
-        w2 = 1.0 - w0 - w1
+        ax, ay, bx, by, cx, cy, area, clamped, w0, w1, w2 = _bary_screen(px, b, f0, f1, f2, qx, qy)
         g0, g1, g2 = g[n, 0], g[n, 1], g[n, 2]
         if perspective:
             z0, z1, z2 = px[b, f0, 2], px[b, f1, 2], px[b, f2, 2]
@@ -612,14 +610,14 @@ _SRGB_KNEE = 0.0031308
 
 @numba.njit(cache=True, nogil=True)
 def _srgb_fwd(x, out):
-    for i in numba.prange(x.shape[0]):
+    for i in range(x.shape[0]):
         v = min(max(x[i], 0.0), 1.0)
         out[i] = 12.92 * v if v <= _SRGB_KNEE else 1.055 * v ** (1 / 2.4) - 0.055
 
 
 @numba.njit(cache=True, nogil=True)
 def _srgb_bwd(x, g, out):
-    for i in numba.prange(x.shape[0]):
+    for i in range(x.shape[0]):
         v = x[i]
         if v < 0.0 or v > 1.0:
             out[i] = 0.0

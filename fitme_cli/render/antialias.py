@@ -107,17 +107,31 @@ def _aa_pair(px, faces, edge_sil, tf, fi, fj, ki, kj, horizontal):
 
 
 @numba.njit(cache=True, nogil=True)
-def _aa_find(px, faces, adjacency, near, tri, depth, rec, rec_t):
-    """All images. Fills rec (K, 7) int64 rows (b, fi, fj, ki, kj, front triangle, edge) and rec_t (K,);
-    returns K. rec must hold 4 rows per silhouette pixel (each pair has one; a pixel is in <= 4 pairs)."""
+def _aa_classify(px, faces, adjacency, near, tri, edge_sil, sil_face):
+    """All images: fills edge_sil (B, F, 3) and sil_face (B, F); returns the number of covered pixels
+    whose triangle has a silhouette edge (each blended pair has one such pixel, a pixel is in <= 4 pairs:
+    4x this bounds the records)."""
     nb, h, w = tri.shape
-    nf = faces.shape[0]
-    front = np.empty(nf, np.bool_)
-    edge_sil = np.empty((nf, 3), np.bool_)
-    sil_face = np.empty(nf, np.bool_)
+    front = np.empty(faces.shape[0], np.bool_)
+    n = 0
+    for b in range(nb):
+        _aa_silhouettes(px[b], faces, adjacency, near, front, edge_sil[b], sil_face[b])
+        for i in range(h):
+            for j in range(w):
+                t = tri[b, i, j]
+                if t >= 0 and sil_face[b, t]:
+                    n += 1
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _aa_find(px, faces, tri, depth, edge_sil, sil_face, rec, rec_t):
+    """All images. Fills rec (K, 7) int64 rows (b, fi, fj, ki, kj, front triangle, edge) and rec_t (K,);
+    returns K. rec must hold 4 rows per silhouette pixel (``_aa_classify``)."""
+    nb, h, w = tri.shape
     k = 0
     for b in range(nb):
-        _aa_silhouettes(px[b], faces, adjacency, near, front, edge_sil, sil_face)
+        sil = sil_face[b]
         for axis in range(2):
             horizontal = axis == 0
             for i in range(h - 1 + horizontal):
@@ -126,37 +140,19 @@ def _aa_find(px, faces, adjacency, near, tri, depth, rec, rec_t):
                     ta, tb = tri[b, i, j], tri[b, i2, j2]
                     if ta == tb:
                         continue
-                    if not ((ta >= 0 and sil_face[ta]) or (tb >= 0 and sil_face[tb])):
+                    if not ((ta >= 0 and sil[ta]) or (tb >= 0 and sil[tb])):
                         continue
                     a_front = depth[b, i, j] <= depth[b, i2, j2]
                     tf = ta if a_front else tb
                     if tf < 0:
                         continue
                     fi, fj, ki, kj = (i, j, i2, j2) if a_front else (i2, j2, i, j)
-                    t, e = _aa_pair(px[b], faces, edge_sil, tf, fi, fj, ki, kj, horizontal)
+                    t, e = _aa_pair(px[b], faces, edge_sil[b], tf, fi, fj, ki, kj, horizontal)
                     if t <= 1.0:
                         rec[k, 0], rec[k, 1], rec[k, 2], rec[k, 3], rec[k, 4], rec[k, 5], rec[k, 6] = b, fi, fj, ki, kj, tf, e
                         rec_t[k] = t
                         k += 1
     return k
-
-
-@numba.njit(cache=True, nogil=True)
-def _aa_count_sil(px, faces, adjacency, near, tri):
-    nb, h, w = tri.shape
-    nf = faces.shape[0]
-    front = np.empty(nf, np.bool_)
-    edge_sil = np.empty((nf, 3), np.bool_)
-    sil_face = np.empty(nf, np.bool_)
-    n = 0
-    for b in range(nb):
-        _aa_silhouettes(px[b], faces, adjacency, near, front, edge_sil, sil_face)
-        for i in range(h):
-            for j in range(w):
-                t = tri[b, i, j]
-                if t >= 0 and sil_face[t]:
-                    n += 1
-    return n
 
 
 @numba.njit(cache=True, nogil=True)
@@ -217,10 +213,12 @@ class _Antialias(torch.autograd.Function):
         f = faces.contiguous().numpy()
         adj = adjacency.contiguous().numpy()
         t = tri.contiguous().numpy()
-        cap = 4 * _aa_count_sil(p, f, adj, near, t)
+        edge_sil = np.empty((t.shape[0], f.shape[0], 3), np.bool_)
+        sil_face = np.empty((t.shape[0], f.shape[0]), np.bool_)
+        cap = 4 * _aa_classify(p, f, adj, near, t, edge_sil, sil_face)
         rec = np.empty((cap, 7), np.int64)
         rec_t = np.empty(cap, p.dtype)
-        k = _aa_find(p, f, adj, near, t, depth.detach().to(px.dtype).contiguous().numpy(), rec, rec_t)
+        k = _aa_find(p, f, t, depth.detach().to(px.dtype).contiguous().numpy(), edge_sil, sil_face, rec, rec_t)
         rec, rec_t = rec[:k], rec_t[:k]
         out = _buffer(c.shape, c.dtype, zero=False)
         out[...] = c

@@ -79,7 +79,7 @@ def _shadow_pass(v, basis, faces, resolution, bias, lit):
 @numba.njit(cache=True, nogil=True)
 def _shadow_passes(v, bases, faces, resolution, bias, out):
     nb, nl = bases.shape[0], bases.shape[1]
-    for k in numba.prange(nb * nl):
+    for k in range(nb * nl):
         b, j = k // nl, k % nl
         _shadow_pass(v[b], bases[b, j], faces, resolution, bias, out[b, j])
 
