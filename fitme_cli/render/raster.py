@@ -38,24 +38,38 @@ class Fragments:
         return self.triangle >= 0
 
 
+_BOX_SLACK = 1e-7
+
+
 @numba.njit(cache=True, nogil=True)
 def _raster_kernel(px, faces, height, width, near, cull, tri_out, depth):
     """px: (V, 3) float64 pixel x, y, depth; tri_out (H, W) int64 filled with -1; depth (H, W) inf."""
     for f in range(faces.shape[0]):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        xa, ya, xb, yb, xc, yc = px[a, 0], px[a, 1], px[b, 0], px[b, 1], px[c, 0], px[c, 1]
+        # Pixel centres in the bounding box first: most head triangles are about a pixel and hold none,
+        # and leaving them before any other test halved the pass (24.6k triangles: 2.0 -> 0.9 ms). The
+        # 1e-7 px slack keeps centres on the box's edge for the exact tests below; NaN fails the compares.
+        fx0 = np.ceil(min(xa, xb, xc) - 0.5 - _BOX_SLACK)
+        fx1 = np.floor(max(xa, xb, xc) - 0.5 + _BOX_SLACK)
+        if not (fx0 <= fx1 and fx1 >= 0.0 and fx0 <= width - 1):
+            continue
+        fy0 = np.ceil(min(ya, yb, yc) - 0.5 - _BOX_SLACK)
+        fy1 = np.floor(max(ya, yb, yc) - 0.5 + _BOX_SLACK)
+        if not (fy0 <= fy1 and fy1 >= 0.0 and fy0 <= height - 1):
+            continue
         za, zb, zc = px[a, 2], px[b, 2], px[c, 2]
         if za < near or zb < near or zc < near:
             continue
-        xa, ya, xb, yb, xc, yc = px[a, 0], px[a, 1], px[b, 0], px[b, 1], px[c, 0], px[c, 1]
         area = (xb - xa) * (yc - ya) - (xc - xa) * (yb - ya)
         if area == 0.0 or not np.isfinite(area):
             continue
         if cull and area > 0:  # back-facing (see rasterize)
             continue
-        x0 = max(int(np.floor(min(xa, xb, xc) - 0.5)), 0)
-        x1 = min(int(np.ceil(max(xa, xb, xc) - 0.5)), width - 1)
-        y0 = max(int(np.floor(min(ya, yb, yc) - 0.5)), 0)
-        y1 = min(int(np.ceil(max(ya, yb, yc) - 0.5)), height - 1)
+        x0 = int(max(fx0, 0.0))  # clamped as floats: int() of an infinity is undefined
+        x1 = int(min(fx1, width - 1.0))
+        y0 = int(max(fy0, 0.0))
+        y1 = int(min(fy1, height - 1.0))
         inv = 1.0 / area
         for i in range(y0, y1 + 1):
             py = i + 0.5
