@@ -308,8 +308,12 @@ def test_one_view_fit_recovers_landmarks_and_albedo(one_view):
 def test_one_view_fit_improves_the_identity_shape(one_view):
     # measured with p_s optimised in prior standard deviations (seed 0, 60 iterations at 128^2, 1 thread):
     # identity shape 1.397 -> 1.186 mm, posed 1.416 -> 1.227 mm. In raw units p_s did not move (1.397 -> 1.392).
+    # 2026-11-24, one VM, four builds equal to within float rounding (the sRGB curve in float32 or float64,
+    # its backward from the output or from a power, or scaled by 1 + 3e-7): 1.397 -> 1.279 / 1.343 / 1.321 /
+    # 1.290 mm. The same perturbations moved seeds 0-9's landmark errors by up to 2.5x (one seed 3.7 ->
+    # 9.1 px): a 60-iteration fit is chaotic, so the bound is what every one of them met, not the luckiest.
     start, fit, _ = one_view
-    assert fit.shape.mean_mm < 0.92 * start.shape.mean_mm
+    assert fit.shape.mean_mm < 0.97 * start.shape.mean_mm
 
 
 def test_three_view_fit_recovers_landmarks_and_albedo(three_views):
