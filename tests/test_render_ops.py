@@ -716,6 +716,30 @@ def test_fused_specular_matches_torch_shading_and_gradcheck(per_texel, shadowed)
     assert torch.autograd.gradcheck(lambda *a: specular_pixels(*a, vis, x["bi"]), tuple(leaves))
 
 
+def test_fused_specular_in_float32_agrees_with_float64():
+    """float32 inputs run the loops in float32 (``_spec_constants``): values and gradients stay within
+    float32 rounding of a float64 run on the same (float32-rounded) inputs. The lobe x^s multiplies the
+    relative rounding of x by s: ~6e-8 s, so 6e-4 at shininess 1e4."""
+    from fitme_cli.render._kernels import specular_pixels
+
+    x = {k: (v.float().double() if v.is_floating_point() else v) for k, v in _specular_inputs().items()}
+    x["nrm"][0] = 0
+    names = ["nts", "nrm", "tan", "p", "eye", "d", "c", "shin"]
+    for shin, tol in ((x["shin"], 5e-5), (torch.tensor([1e4], dtype=torch.float64), 3e-3)):
+        runs = []
+        for dt in (torch.float64, torch.float32):
+            leaves = [x[k].to(dt).requires_grad_() for k in names[:7]] + [shin.to(dt).requires_grad_()]
+            out = specular_pixels(*leaves, x["vis"].to(dt), x["bi"])
+            g = torch.linspace(0.5, 1.5, out.numel(), dtype=dt).view_as(out)
+            runs.append((out.detach(), torch.autograd.grad(out, leaves, g)))
+        (v64, g64), (v32, g32) = runs
+        assert v32.dtype == torch.float32 and torch.isfinite(v32).all() and v64.max() > 0
+        assert float((v32.double() - v64).abs().max()) <= tol * float(v64.abs().max())
+        for a, b, name in zip(g32, g64, names):
+            assert torch.isfinite(a).all(), name
+            assert float((a.double() - b).abs().max()) <= 3 * tol * (float(b.abs().max()) + 1e-12), name
+
+
 def test_fused_specular_hard_cases_are_finite():
     from fitme_cli.render._kernels import specular_pixels
 
