@@ -210,7 +210,7 @@ def test_a_few_steps_on_tiny_data_lower_the_loss():
     losses = [train_step(state, data[torch.randint(0, 16, (8,))]) for _ in range(60)]
     with torch.no_grad():
         after = (state.G(torch.randn(32, TINY.z_dim)).cat().mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean()
-    assert after < 0.5 * before  # G moved toward the data
+    assert after < 0.65 * before  # G moved toward the data (0.54x measured with the mean image fixed at zero here)
     d_first = np.mean([d["loss_d"] for d in losses[:5]])
     assert d_first > 1.0 and min(d["loss_d"] for d in losses) < d_first  # D learned to tell them apart
     assert all(np.isfinite(d["loss_g"]) and np.isfinite(d["loss_d"]) for d in losses)
@@ -239,6 +239,50 @@ def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
         assert torch.equal(va, vb), ka
     for (ka, va), (_, vb) in zip(state.D.state_dict().items(), loaded.D.state_dict().items()):
         assert torch.equal(va, vb), ka
+
+
+def test_mean_image_is_fixed_and_old_checkpoints_migrate(tmp_path):
+    """The mean image is a buffer (trained, it became per-texel noise: docs/brdf_gan.md). A checkpoint
+    from before, with Adam state for it, loads with every other parameter's state where it belongs."""
+    from safetensors.torch import load_file, save_file
+
+    from fitme_cli.reflectance.gan.train import reset_mean_image
+
+    data = _tiny_data()
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1), data_mean=data.mean(0))
+    assert "synthesis.mean_image" not in dict(state.G.named_parameters())
+    for _ in range(2):
+        train_step(state, data[:4])
+    torch.testing.assert_close(state.G.synthesis.mean_image, data.mean(0), rtol=0, atol=0)
+    save_checkpoint(state, tmp_path / "new.safetensors")
+    assert not load_checkpoint(tmp_path / "new.safetensors").learned_mean_image
+    # the same checkpoint as the old code wrote it: Adam state for the mean image after synthesis.const
+    from safetensors import safe_open
+
+    with safe_open(str(tmp_path / "new.safetensors"), "pt") as f:
+        meta = f.metadata()
+    tensors = load_file(str(tmp_path / "new.safetensors"))
+    names = [n for n, _ in state.G.named_parameters()]
+    at = names.index("synthesis.const") + 1
+    old = {k: v for k, v in tensors.items() if not k.startswith("opt_G.")}
+    for key, v in tensors.items():
+        if key.startswith("opt_G."):
+            _, i, rest = key.split(".")
+            old[f"opt_G.{int(i) + (int(i) >= at)}.{rest}"] = v
+    for rest in ("step", "exp_avg", "exp_avg_sq"):
+        old[f"opt_G.{at}.{rest}"] = torch.full((7, 16, 16), 3.0) if rest != "step" else torch.tensor(2.0)
+    noisy = data.mean(0) + torch.randn(7, 16, 16)
+    for g in ("G", "G_ema"):
+        old[f"{g}.synthesis.mean_image"] = noisy.clone()
+    save_file(old, str(tmp_path / "old.safetensors"), metadata=meta)
+    loaded = load_checkpoint(tmp_path / "old.safetensors")
+    assert loaded.learned_mean_image
+    for name, pa, pb in zip(names, state.G.parameters(), loaded.G.parameters()):
+        for k in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(state.opt_G.state[pa][k], loaded.opt_G.state[pb][k]), (name, k)
+    reset_mean_image(loaded, data.mean(0))
+    assert torch.equal(loaded.G_ema.synthesis.mean_image, data.mean(0))
+    train_step(loaded, data[4:8])  # trains on
 
 
 def test_train_loop_snapshots(tmp_path):

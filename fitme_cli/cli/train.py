@@ -54,7 +54,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..errors import InputNotFound, OutputNotWritable
     from ..reflectance.gan.data import load_dataset
     from ..reflectance.gan.networks import GanSettings
-    from ..reflectance.gan.train import TrainSettings, load_checkpoint, new_state, save_checkpoint, train
+    from ..reflectance.gan.train import TrainSettings, load_checkpoint, new_state, reset_mean_image, save_checkpoint, train
 
     from ..reflectance.gan.data import find_samples
 
@@ -118,6 +118,9 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     data = load_dataset(data_dir, gan_settings, limit=limit, progress=True)
     if state is None:
         state = new_state(gan_settings, train_settings, data_mean=data.float().mean(0))
+    elif state.learned_mean_image:
+        reset_mean_image(state, data.float().mean(0))
+        click.echo("the checkpoint's mean image was trained (before it became fixed): reset to the data mean", err=True)
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
                f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
     try:

@@ -239,16 +239,19 @@ class SynthesisNetwork(nn.Module):
     """ws (B, num_ws, w_dim) -> GanImages. A shared trunk up to ``branch_resolution / 2``, then one stack of
     blocks per modality, all reading the same ws (one identity, three consistent maps).
 
-    Our one addition to StyleGAN2: ``mean_image``, a learned (7, R, R) map added to the output,
-    initialised to the training data's mean. Every map shares the fixed UV layout, so the blocks only
-    have to learn the variation around the mean face; on a CPU budget of a few kimg this is the
-    difference between blobs and faces (measured: docs/brdf_gan.md)."""
+    Our one addition to StyleGAN2: ``mean_image``, a fixed (7, R, R) map added to the output, the
+    training data's mean. Every map shares the fixed UV layout, so the blocks only have to learn the
+    variation around the mean face; on a CPU budget of a few kimg this is the difference between blobs
+    and faces (measured: docs/brdf_gan.md). It is a buffer, not a parameter: trained by Adam it was
+    one free value per texel, and each step's noisy gradient moved every texel by about the learning
+    rate, a random walk. After 35 kimg its high-pass std was 10x the data mean's in the albedo
+    and 15x in the normals: the fixed ringing and speckle every sample carried."""
 
     def __init__(self, s: GanSettings):
         super().__init__()
         self.s = s
         self.const = nn.Parameter(torch.randn(s.channels(4), 4, 4))
-        self.mean_image = nn.Parameter(torch.zeros(N_CHANNELS, s.resolution, s.resolution))
+        self.register_buffer("mean_image", torch.zeros(N_CHANNELS, s.resolution, s.resolution))
         self.trunk = nn.ModuleDict()
         self.branches = nn.ModuleDict({name: nn.ModuleDict() for name, _ in MODALITIES})
         for res in s.resolutions:

@@ -69,6 +69,7 @@ class TrainState:
     ada_acc: float = 0.0  # running sum of sign(D(real)) since the last p update
     ada_n: int = 0
     wall_time: float = 0.0  # seconds spent in training steps, over all sessions
+    learned_mean_image: bool = False  # loaded from a checkpoint whose mean image was trained (``_drop_mean_image_state``)
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -217,6 +218,33 @@ def _settings(cls, d: dict):
     return cls(**{k: v for k, v in d.items() if k in names})
 
 
+def _drop_mean_image_state(G: Generator, tensors: dict[str, torch.Tensor]) -> bool:
+    """Checkpoints from before ``mean_image`` became a buffer hold Adam state for it, as the parameter
+    right after ``synthesis.const``: drop it and renumber the rest. Returns True for such a checkpoint
+    (its mean image was trained: ``reset_mean_image`` puts the data mean back)."""
+    names = [n for n, _ in G.named_parameters()]
+    ids = {int(k.split(".")[1]) for k in tensors if k.startswith("opt_G.")}
+    if len(ids) != len(names) + 1:
+        return False
+    old = names[: names.index("synthesis.const") + 1] + ["synthesis.mean_image"] + names[names.index("synthesis.const") + 1 :]
+    gone = old.index("synthesis.mean_image")
+    moved = {}
+    for key in [k for k in tensors if k.startswith("opt_G.")]:
+        _, i, rest = key.split(".")
+        v = tensors.pop(key)
+        if int(i) != gone:
+            moved[f"opt_G.{int(i) - (int(i) > gone)}.{rest}"] = v
+    tensors.update(moved)
+    return True
+
+
+def reset_mean_image(state: TrainState, data_mean: torch.Tensor) -> None:
+    """Set G's and G_ema's mean image to ``data_mean`` (7, R, R) network space."""
+    with torch.no_grad():
+        state.G.synthesis.mean_image.copy_(data_mean)
+        state.G_ema.synthesis.mean_image.copy_(data_mean)
+
+
 def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainState:
     """Restore a TrainState. ``train`` overrides the stored train settings (e.g. a longer ``kimg``)."""
     from safetensors import safe_open
@@ -230,6 +258,7 @@ def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainStat
     tensors = load_file(str(path))
     for name, module in (("G", state.G), ("D", state.D), ("G_ema", state.G_ema)):
         module.load_state_dict({k[len(name) + 1 :]: v for k, v in tensors.items() if k.startswith(name + ".")})
+    state.learned_mean_image = _drop_mean_image_state(state.G, tensors)
     _load_opt("opt_G", state.opt_G, tensors)
     _load_opt("opt_D", state.opt_D, tensors)
     torch.set_rng_state(tensors["rng.torch"])
