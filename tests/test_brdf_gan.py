@@ -207,14 +207,15 @@ def test_a_few_steps_on_tiny_data_lower_the_loss():
     state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01))
     with torch.no_grad():
         before = (state.G(torch.randn(32, TINY.z_dim)).cat().mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean()
-    losses = [train_step(state, data[torch.randint(0, 16, (8,))]) for _ in range(60)]
+    # 100 steps: with the mean image fixed (not learned) the blocks must move the output themselves
+    losses = [train_step(state, data[torch.randint(0, 16, (8,))]) for _ in range(100)]
     with torch.no_grad():
         after = (state.G(torch.randn(32, TINY.z_dim)).cat().mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean()
-    assert after < 0.65 * before  # G moved toward the data (0.54x measured with the mean image fixed at zero here)
+    assert after < 0.5 * before  # G moved toward the data (0.40x measured)
     d_first = np.mean([d["loss_d"] for d in losses[:5]])
     assert d_first > 1.0 and min(d["loss_d"] for d in losses) < d_first  # D learned to tell them apart
     assert all(np.isfinite(d["loss_g"]) and np.isfinite(d["loss_d"]) for d in losses)
-    assert state.nimg == 480 and state.step == 60
+    assert state.nimg == 800 and state.step == 100
 
 
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
