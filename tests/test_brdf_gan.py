@@ -373,7 +373,8 @@ def test_shipped_generator_round_trip(tmp_path):
         load_generator(tmp_path / "nowhere")
 
 
-def test_quality_metrics(dataset_dir, models_root):
+@pytest.mark.parametrize("init_seed", [0, 2])  # the truncation check held for seeds 0-3
+def test_quality_metrics(dataset_dir, models_root, init_seed):
     """The card's metrics on tiny data: all present and finite; known values of the distance and the
     smoothness measure."""
     import cv2
@@ -383,21 +384,59 @@ def test_quality_metrics(dataset_dir, models_root):
     from fitme_cli.reflectance.gan.metrics import frechet_distance, interpolation_smoothness
     from fitme_cli.reflectance.gan.report import evaluate
 
+    torch.manual_seed(init_seed)
     s = GanSettings(resolution=64, branch_resolution=64, channel_base=64, channel_max=16, z_dim=8, w_dim=8)
     data = load_dataset(dataset_dir, s)
     region_uv = load_file(str(models_root / "shape_model.safetensors"))["region_uv"]
     regions = torch.from_numpy(cv2.resize(region_uv, (64, 64), interpolation=cv2.INTER_NEAREST))
     m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
-    assert set(m) == {"per_channel", "frechet_reflectance_features", "modality_consistency", "interpolation_max_over_mean_step"}
+    assert set(m) == {"per_channel", "frechet_reflectance_features", "region_albedo_q10_q50_q90", "modality_consistency",
+                      "interpolation_max_over_mean_step"}
+    assert set(m["frechet_reflectance_features"]["by_part"]) == {"tone", "detail"}
+    tones = m["region_albedo_q10_q50_q90"]
+    assert {"scalp", "skin", "lips"} <= set(tones)
+    for t in tones.values():
+        for q in t.values():
+            assert len(q) == 3 and 0 <= q[0] <= q[1] <= q[2] <= 1
     assert len(m["per_channel"]) == 7 and all(np.isfinite(v) for c in m["per_channel"].values() for v in c.values())
     fd = m["frechet_reflectance_features"]
     assert fd["gan_vs_heldout_half"] > 0 and fd["half_vs_half"] >= 0  # (8 samples: too few to rank them)
     assert all(-1 <= v <= 1 for v in m["modality_consistency"].values())  # correlations (at 64^2 the pores are sub-texel)
+    # truncation moves only the generated side, toward w_avg: less spread of tone between samples
+    G = Generator(s)
+    G.ws(torch.randn(64, s.z_dim), update_w_avg=True)
+    full, trunc = (evaluate(G, data, regions, n_fake=8, n_real=8, truncation_psi=p) for p in (1.0, 0.01))
+    assert full["region_albedo_q10_q50_q90"]["skin"]["data"] == trunc["region_albedo_q10_q50_q90"]["skin"]["data"]
+
+    def spread(m):
+        return sum(q["gan"][2] - q["gan"][0] for q in m["region_albedo_q10_q50_q90"].values())
+    assert spread(trunc) < 0.5 * spread(full)
     a = np.random.default_rng(0).normal(size=(50, 3))
     assert frechet_distance(a, a) == pytest.approx(0.0, abs=1e-6)
     assert frechet_distance(a, a + 2.0) == pytest.approx(12.0, rel=1e-6)  # |mean shift|^2 = 3 * 4
     walk = torch.linspace(0, 1, 9).view(9, 1, 1, 1).expand(9, 3, 4, 4)
     assert interpolation_smoothness(walk) == pytest.approx(1.0)
+
+
+def test_feature_parts_and_region_albedo_known_values():
+    from fitme_cli.reflectance.gan.metrics import feature_parts, reflectance_features, region_albedo
+
+    # two regions (left half 0, right half 3); albedo (0.1, 0.2, 0.3) left and 0.6 grey right, flat
+    phys = torch.zeros(2, 7, 8, 8)
+    phys[:, 0:3, :, :4] = torch.tensor([0.1, 0.2, 0.3]).view(3, 1, 1)
+    phys[:, 0:3, :, 4:] = 0.6
+    phys[1, 0:3] *= 0.5
+    regions = torch.zeros(8, 8, dtype=torch.uint8)
+    regions[:, 4:] = 3
+    f = reflectance_features(phys, regions)
+    tone, detail = feature_parts(f)
+    assert tone.shape == (2, 14) and detail.shape == (2, 42)
+    np.testing.assert_allclose(region_albedo(f), [[0.2, 0.6], [0.1, 0.3]], atol=1e-6)
+    assert detail.max() > 0.01  # the edge between the halves is detail
+    _, flat = feature_parts(reflectance_features(torch.full((1, 7, 8, 8), 0.4), regions))
+    assert np.abs(flat).max() < 1e-6  # a constant map has none
+    with pytest.raises(ValueError, match="28"):
+        feature_parts(f[:, :30])
 
 
 def test_w_prior_is_about_one_for_samples_and_large_off_the_manifold():

@@ -10,6 +10,8 @@
   correlation between the albedo's band-pass luminance and the normals' divergence (concave < 0),
   for matching pairs against mismatched pairs.
 - ``interpolation_smoothness``: the largest step of a latent walk relative to its mean step.
+- ``feature_parts`` and ``region_albedo``: views of ``reflectance_features`` that say where a Frechet
+  distance comes from (tone per region vs detail) and how each region's albedo is distributed.
 """
 
 from __future__ import annotations
@@ -20,8 +22,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["ChannelStats", "channel_stats", "reflectance_features", "frechet_distance", "modality_consistency",
-           "interpolation_smoothness"]
+__all__ = ["ChannelStats", "channel_stats", "reflectance_features", "feature_parts", "region_albedo",
+           "frechet_distance", "modality_consistency", "interpolation_smoothness"]
+
+_PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
 
 @dataclass(frozen=True)
@@ -64,6 +68,21 @@ def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarra
         for b in bands:
             feats.append(((b.square() * m).sum(dim=(2, 3)) / area).sqrt())
     return torch.cat(feats, 1).double().numpy()
+
+
+def feature_parts(feats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 28 k) reflectance features -> (tone (N, 7 k): the region means, detail (N, 21 k): the band energies)."""
+    if feats.ndim != 2 or feats.shape[1] % _PER_REGION:
+        raise ValueError(f"expected (N, 28 * regions) reflectance features, got shape {feats.shape}")
+    blocks = feats.reshape(len(feats), -1, _PER_REGION)
+    return blocks[:, :, :7].reshape(len(feats), -1), blocks[:, :, 7:].reshape(len(feats), -1)
+
+
+def region_albedo(feats: np.ndarray) -> np.ndarray:
+    """(N, 28 k) reflectance features -> (N, k) each sample's mean linear albedo (mean of r, g, b) per
+    region, regions in the order of their labels."""
+    tone, _ = feature_parts(feats)
+    return tone.reshape(len(feats), -1, 7)[:, :, :3].mean(2)
 
 
 def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from .data import load_dataset
-from .metrics import (ChannelStats, frechet_distance, interpolation_smoothness, modality_consistency,
-                      reflectance_features)
+from .metrics import (ChannelStats, feature_parts, frechet_distance, interpolation_smoothness, modality_consistency,
+                      reflectance_features, region_albedo)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -42,13 +42,13 @@ class _Stats:
         return ChannelStats(mean.tolist(), (self.ss / self.n - mean.square()).clamp(min=0).sqrt().tolist())
 
 
-def _batches(G: Generator, data: torch.Tensor | None, n: int, seed: int, batch: int = 32):
+def _batches(G: Generator, data: torch.Tensor | None, n: int, seed: int, batch: int = 32, truncation_psi: float = 1.0):
     """Physical (b, 7, R, R) batches: generated (data None) or decoded from the data tensor."""
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for i in range(0, n, batch):
             k = min(batch, n - i)
-            imgs = G(torch.randn(k, G.settings.z_dim, generator=g), noise_mode="random") if data is None \
+            imgs = G(torch.randn(k, G.settings.z_dim, generator=g), truncation_psi=truncation_psi, noise_mode="random") if data is None \
                 else GanImages.split(data[i : i + k].float())
             m = decode_maps(imgs, G.settings)
             yield torch.cat([m.albedo, m.specular, m.normals], 1)
@@ -62,7 +62,7 @@ def _encoded(stats_mean, stats_std):
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
-             seed: int = 0) -> dict:
+             seed: int = 0, truncation_psi: float = 1.0) -> dict:
     """All card metrics. data: (N, 7, R, R) network space; regions: (R, R) uint8 labels. Streams in
     batches (the whole set in float32 would be gigabytes)."""
     mapped = regions != 255
@@ -74,7 +74,7 @@ def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: in
     feats, stats, cons = {}, {}, {}
     for name, src, n in (("gan", None, n_fake), ("data", data[:n_real], n_real)):
         st, fs, cm = _Stats(mapped), [], []
-        for x in _batches(G, src, n, seed):
+        for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
             st.add(x)
             fs.append(reflectance_features(x, regions))
             if sum(len(c) for c in cm) < 200:
@@ -90,25 +90,44 @@ def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: in
     fa, fb = feats["data"][:half], feats["data"][half:]
     fd_gan = frechet_distance(feats["gan"][: len(fb)], fb)
     fd_split = frechet_distance(fa, fb)
+    # where the distance comes from: the tone of each region, or its detail
+    by_part = {}
+    for part, gan_p, a_p, b_p in zip(("tone", "detail"), feature_parts(feats["gan"][: len(fb)]), feature_parts(fa),
+                                     feature_parts(fb)):
+        by_part[part] = {"gan_vs_heldout_half": round(frechet_distance(gan_p, b_p), 4),
+                         "half_vs_half": round(frechet_distance(a_p, b_p), 4)}
+    labels = sorted(int(v) for v in torch.unique(regions) if int(v) != 255)
+    q = (0.1, 0.5, 0.9)
+    tones = {name: region_albedo(feats[name]) for name in ("gan", "data")}
+    region_tone = {_region_name(lab): {name: [round(float(v), 4) for v in np.quantile(tones[name][:, j], q)]
+                                       for name in ("data", "gan")} for j, lab in enumerate(labels)}
     g = torch.Generator().manual_seed(seed + 1)
     ratios = []
     with torch.no_grad():
         for _ in range(8):
-            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g))
+            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g), truncation_psi)
             t = torch.linspace(0, 1, 16).view(-1, 1, 1)
             walk = G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const").cat()
             ratios.append(interpolation_smoothness(walk))
     return {
         "per_channel": per_channel,
         "frechet_reflectance_features": {"gan_vs_heldout_half": round(fd_gan, 4), "half_vs_half": round(fd_split, 4),
-                                         "samples": [min(len(feats["gan"]), len(fb)), len(fb)]},
+                                         "samples": [min(len(feats["gan"]), len(fb)), len(fb)],
+                                         "by_part": by_part},
+        "region_albedo_q10_q50_q90": region_tone,
         "modality_consistency": {"gan_matched": round(cons["gan"][0], 3), "gan_mismatched": round(cons["gan"][1], 3),
                                  "data_matched": round(cons["data"][0], 3), "data_mismatched": round(cons["data"][1], 3)},
         "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
     }
 
 
-def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
+def _region_name(label: int) -> str:
+    from ...shape.regions import REGIONS
+
+    return REGIONS[label] if label < len(REGIONS) else f"region{label}"
+
+
+def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: float = 1.0) -> list[Path]:
     """brdf_gan_samples.png (16 GAN triplets), brdf_gan_data.png (16 training triplets),
     brdf_gan_interpolation.png (4 latent walks, 8 steps, albedo and normals); at half resolution (the
     docs stay small; full-resolution grids are in the training run's samples/)."""
@@ -119,7 +138,7 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     z = torch.randn(16, G.settings.z_dim, generator=torch.Generator().manual_seed(7))
-    grid = sample_grid(G, z)
+    grid = sample_grid(G, z, truncation_psi)
     r = G.settings.resolution
     two = np.concatenate([grid[: 8 * r], grid[8 * r :]], 1)  # 8 rows x 2 columns of triplets
     atomic_write_image(out_dir / "brdf_gan_samples.png", _half(two))
@@ -141,7 +160,7 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path) -> list[Path]:
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
         for _ in range(4):
-            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g))
+            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g), truncation_psi)
             t = torch.linspace(0, 1, 8).view(-1, 1, 1)
             m = decode_maps(G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const"), G.settings)
             alb = _linear_to_srgb(m.albedo)
@@ -181,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-fake", type=int, default=500)
     ap.add_argument("--n-real", type=int, default=1000, help="training samples compared (two halves)")
     ap.add_argument("--train-command", default="", help="recorded in the card")
+    ap.add_argument("--truncation-psi", type=float, default=1.0,
+                    help="sample with w = w_avg + psi (w - w_avg); below 1 the card also keeps the psi = 1 metrics")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     state = load_checkpoint(args.run_dir / "checkpoint.safetensors")
@@ -190,7 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     regions = torch.from_numpy(cv2.resize(region_uv, (G.settings.resolution,) * 2, interpolation=cv2.INTER_NEAREST))
-    metrics = evaluate(G, data, regions, n_fake=args.n_fake, n_real=args.n_real)
+    if not 0 < args.truncation_psi <= 1:
+        ap.error(f"--truncation-psi must be in (0, 1], got {args.truncation_psi}")
+    metrics = evaluate(G, data, regions, n_fake=args.n_fake, n_real=args.n_real, truncation_psi=args.truncation_psi)
+    untruncated = evaluate(G, data, regions, n_fake=args.n_fake, n_real=args.n_real) if args.truncation_psi != 1 else None
     data_card = json.loads((args.data_dir / "dataset.json").read_text()) if (args.data_dir / "dataset.json").is_file() else {}
     card = {
         "data": {"samples": state_data_count(args.data_dir), "compared": len(data), "resolution": G.settings.resolution,
@@ -199,13 +223,15 @@ def main(argv: list[str] | None = None) -> int:
         "training": {"kimg": round(state.nimg / 1000, 3), "steps": state.step, "wall_time_h": round(state.wall_time / 3600, 3),
                      "train_settings": json.loads(json.dumps(state.train.__dict__)),
                      "machine": "2 CPU cores (no GPU)", "command": args.train_command},
+        "sampling": {"truncation_psi": args.truncation_psi},
         "metrics": metrics,
+        **({"metrics_truncation_psi_1": untruncated} if untruncated else {}),
         "report_command": "python -m fitme_cli.reflectance.gan.report " + " ".join(sys.argv[1:] if argv is None else argv),
         "evaluation_seconds": round(time.perf_counter() - t0, 1),
     }
     save_generator(G, args.models, card)
     if args.figures:
-        figures(G, data, args.figures)
+        figures(G, data, args.figures, args.truncation_psi)
     print(json.dumps(metrics, indent=2))
     return 0
 
