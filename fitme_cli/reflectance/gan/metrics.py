@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["ChannelStats", "channel_stats", "reflectance_features", "feature_parts", "region_albedo",
+__all__ = ["ChannelStats", "channel_stats", "region_labels", "reflectance_features", "feature_parts", "region_albedo",
            "frechet_distance", "modality_consistency", "interpolation_smoothness"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
@@ -55,13 +55,18 @@ def _bandpass(x: torch.Tensor, levels: int = 3) -> list[torch.Tensor]:
     return bands
 
 
+def region_labels(regions: torch.Tensor) -> list[int]:
+    """(R, R) uint8 label map -> its mapped labels (255 = unmapped) ascending: the order of the regions'
+    blocks in ``reflectance_features``."""
+    return sorted(int(v) for v in torch.unique(regions) if int(v) != 255)
+
+
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:
     """(N, 7, R, R) physical maps, (R, R) uint8 region labels (255 unmapped) -> (N, 224) float64."""
-    labels = [int(v) for v in torch.unique(regions) if int(v) != 255]
     x = phys.float()
     feats = []
     bands = _bandpass(x)
-    for lab in sorted(labels):
+    for lab in region_labels(regions):
         m = (regions == lab).float()
         area = m.sum().clamp(min=1)
         feats.append((x * m).sum(dim=(2, 3)) / area)
@@ -80,7 +85,7 @@ def feature_parts(feats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def region_albedo(feats: np.ndarray) -> np.ndarray:
     """(N, 28 k) reflectance features -> (N, k) each sample's mean linear albedo (mean of r, g, b) per
-    region, regions in the order of their labels."""
+    region, in ``region_labels`` order."""
     tone, _ = feature_parts(feats)
     return tone.reshape(len(feats), -1, 7)[:, :, :3].mean(2)
 

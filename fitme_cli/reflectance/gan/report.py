@@ -15,7 +15,7 @@ import torch
 
 from .data import load_dataset
 from .metrics import (ChannelStats, feature_parts, frechet_distance, interpolation_smoothness, modality_consistency,
-                      reflectance_features, region_albedo)
+                      reflectance_features, region_albedo, region_labels)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -61,46 +61,61 @@ def _encoded(stats_mean, stats_std):
     return mean, std
 
 
+def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
+             mapped: torch.Tensor, skin: torch.Tensor) -> tuple[ChannelStats, np.ndarray, tuple[float, float]]:
+    """One side of the comparison (generated when src is None): channel stats, reflectance features and
+    modality consistency."""
+    st, fs, cm = _Stats(mapped), [], []
+    for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
+        st.add(x)
+        fs.append(reflectance_features(x, regions))
+        if sum(len(c) for c in cm) < 200:
+            cm.append(x)
+    return st.result(), np.concatenate(fs), modality_consistency(torch.cat(cm)[:200], skin)
+
+
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
              seed: int = 0, truncation_psi: float = 1.0) -> dict:
     """All card metrics. data: (N, 7, R, R) network space; regions: (R, R) uint8 labels. Streams in
     batches (the whole set in float32 would be gigabytes)."""
+    return evaluate_psis(G, data, regions, (truncation_psi,), n_fake, n_real, seed)[0]
+
+
+def evaluate_psis(G: Generator, data: torch.Tensor, regions: torch.Tensor, truncation_psis: tuple[float, ...],
+                  n_fake: int = 500, n_real: int = 1000, seed: int = 0) -> list[dict]:
+    """``evaluate`` at each truncation psi, the data side measured once."""
     mapped = regions != 255
     skin = torch.zeros_like(mapped)
     for lab in (1, 2, 5):  # skin, forehead, nose: where the wrinkles and pores are
         skin |= regions == lab
     n_real = min(n_real, len(data))
-    half = n_real // 2
-    feats, stats, cons = {}, {}, {}
-    for name, src, n in (("gan", None, n_fake), ("data", data[:n_real], n_real)):
-        st, fs, cm = _Stats(mapped), [], []
-        for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
-            st.add(x)
-            fs.append(reflectance_features(x, regions))
-            if sum(len(c) for c in cm) < 200:
-                cm.append(x)
-        stats[name], feats[name] = st.result(), np.concatenate(fs)
-        cons[name] = modality_consistency(torch.cat(cm)[:200], skin)
-    fm, fsd = _encoded(stats["gan"].mean, stats["gan"].std)
-    rm, rsd = _encoded(stats["data"].mean, stats["data"].std)
+    real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin)
+    return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin), real, regions, seed, psi)
+            for psi in truncation_psis]
+
+
+def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncation_psi: float) -> dict:
+    (gan_stats, gan_feats, gan_cons), (data_stats, data_feats, data_cons) = gan, real
+    half = len(data_feats) // 2
+    fm, fsd = _encoded(gan_stats.mean, gan_stats.std)
+    rm, rsd = _encoded(data_stats.mean, data_stats.std)
     per_channel = {name: {"data_mean": round(rm[i], 4), "gan_mean": round(fm[i], 4),
                           "mean_rel_diff": round(abs(fm[i] - rm[i]) / abs(rm[i]), 4),
                           "data_std": round(rsd[i], 4), "gan_std": round(fsd[i], 4),
                           "std_rel_diff": round(abs(fsd[i] - rsd[i]) / rsd[i], 4)} for i, name in enumerate(_CHANNELS)}
-    fa, fb = feats["data"][:half], feats["data"][half:]
-    fd_gan = frechet_distance(feats["gan"][: len(fb)], fb)
+    fa, fb = data_feats[:half], data_feats[half:]
+    fg = gan_feats[: len(fb)]
+    fd_gan = frechet_distance(fg, fb)
     fd_split = frechet_distance(fa, fb)
     # where the distance comes from: the tone of each region, or its detail
     by_part = {}
-    for part, gan_p, a_p, b_p in zip(("tone", "detail"), feature_parts(feats["gan"][: len(fb)]), feature_parts(fa),
-                                     feature_parts(fb)):
+    for part, gan_p, a_p, b_p in zip(("tone", "detail"), feature_parts(fg), feature_parts(fa), feature_parts(fb)):
         by_part[part] = {"gan_vs_heldout_half": round(frechet_distance(gan_p, b_p), 4),
                          "half_vs_half": round(frechet_distance(a_p, b_p), 4)}
-    labels = sorted(int(v) for v in torch.unique(regions) if int(v) != 255)
     q = (0.1, 0.5, 0.9)
-    tones = {name: region_albedo(feats[name]) for name in ("gan", "data")}
+    tones = {"gan": region_albedo(gan_feats), "data": region_albedo(data_feats)}
     region_tone = {_region_name(lab): {name: [round(float(v), 4) for v in np.quantile(tones[name][:, j], q)]
-                                       for name in ("data", "gan")} for j, lab in enumerate(labels)}
+                                       for name in ("data", "gan")} for j, lab in enumerate(region_labels(regions))}
     g = torch.Generator().manual_seed(seed + 1)
     ratios = []
     with torch.no_grad():
@@ -112,11 +127,11 @@ def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: in
     return {
         "per_channel": per_channel,
         "frechet_reflectance_features": {"gan_vs_heldout_half": round(fd_gan, 4), "half_vs_half": round(fd_split, 4),
-                                         "samples": [min(len(feats["gan"]), len(fb)), len(fb)],
+                                         "samples": [len(fg), len(fb)],
                                          "by_part": by_part},
         "region_albedo_q10_q50_q90": region_tone,
-        "modality_consistency": {"gan_matched": round(cons["gan"][0], 3), "gan_mismatched": round(cons["gan"][1], 3),
-                                 "data_matched": round(cons["data"][0], 3), "data_mismatched": round(cons["data"][1], 3)},
+        "modality_consistency": {"gan_matched": round(gan_cons[0], 3), "gan_mismatched": round(gan_cons[1], 3),
+                                 "data_matched": round(data_cons[0], 3), "data_mismatched": round(data_cons[1], 3)},
         "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
     }
 
@@ -203,6 +218,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--truncation-psi", type=float, default=1.0,
                     help="sample with w = w_avg + psi (w - w_avg); below 1 the card also keeps the psi = 1 metrics")
     args = ap.parse_args(argv)
+    if not 0 < args.truncation_psi <= 1:
+        ap.error(f"--truncation-psi must be in (0, 1], got {args.truncation_psi}")
     t0 = time.perf_counter()
     state = load_checkpoint(args.run_dir / "checkpoint.safetensors")
     G = copy_generator(state.G_ema)
@@ -211,10 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     regions = torch.from_numpy(cv2.resize(region_uv, (G.settings.resolution,) * 2, interpolation=cv2.INTER_NEAREST))
-    if not 0 < args.truncation_psi <= 1:
-        ap.error(f"--truncation-psi must be in (0, 1], got {args.truncation_psi}")
-    metrics = evaluate(G, data, regions, n_fake=args.n_fake, n_real=args.n_real, truncation_psi=args.truncation_psi)
-    untruncated = evaluate(G, data, regions, n_fake=args.n_fake, n_real=args.n_real) if args.truncation_psi != 1 else None
+    psis = (args.truncation_psi,) if args.truncation_psi == 1 else (args.truncation_psi, 1.0)
+    metrics, *untruncated = evaluate_psis(G, data, regions, psis, n_fake=args.n_fake, n_real=args.n_real)
     data_card = json.loads((args.data_dir / "dataset.json").read_text()) if (args.data_dir / "dataset.json").is_file() else {}
     card = {
         "data": {"samples": state_data_count(args.data_dir), "compared": len(data), "resolution": G.settings.resolution,
@@ -225,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
                      "machine": "2 CPU cores (no GPU)", "command": args.train_command},
         "sampling": {"truncation_psi": args.truncation_psi},
         "metrics": metrics,
-        **({"metrics_truncation_psi_1": untruncated} if untruncated else {}),
+        **({"metrics_truncation_psi_1": untruncated[0]} if untruncated else {}),
         "report_command": "python -m fitme_cli.reflectance.gan.report " + " ".join(sys.argv[1:] if argv is None else argv),
         "evaluation_seconds": round(time.perf_counter() - t0, 1),
     }
