@@ -112,6 +112,53 @@ def test_brightness(reference, astronaut, models_root, gain, gamma):
     assert _mean_err(det.face.landmarks.points[:, :2], reference.face.landmarks.points[:, :2]) < 0.03 * _face_size(reference)
 
 
+def _srgb_to_lin(x: np.ndarray) -> np.ndarray:
+    x = x / 255.0
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def _lin_to_srgb(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0, 1)
+    return np.round(255 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)).astype(np.uint8)
+
+
+def _retone(photo: np.ndarray, det, level: int) -> np.ndarray:
+    """The photo with the face's skin (inside the landmarks' hull, eyes and mouth kept) scaled in linear
+    RGB so its median becomes Monk Skin Tone ``level``'s swatch, at the photo's exposure (taken as MST 6's)."""
+    from fitme_cli.reflectance.augment import monk_albedo
+
+    mask = np.zeros(photo.shape[:2], np.float32)
+    cv2.fillConvexPoly(mask, cv2.convexHull(det.face.landmarks.points[:, :2].astype(np.int32)), 1.0)
+    i68 = det.face.landmarks.ibug68
+    for part in (i68[36:42], i68[42:48], i68[60:68]):
+        cv2.fillConvexPoly(mask, cv2.convexHull(part.astype(np.int32)), 0.0)
+    mask = cv2.GaussianBlur(mask, (0, 0), 3)[..., None]
+    lin = _srgb_to_lin(photo)
+    skin = np.median(lin[mask[..., 0] > 0.9], axis=0)
+    target = monk_albedo(level) * (skin.mean() / monk_albedo(6).mean())
+    return _lin_to_srgb(lin * (1 - mask + mask * target / skin))
+
+
+# A real face re-toned across the Monk scale: BlazeFace + FaceMesh must not depend on skin tone. (The
+# synthetic stability subjects are harder: their renders have no eyeballs, and at MST 9-10 BlazeFace
+# misses some even undegraded; see docs/perception.md. On the re-toned astronaut every level is found,
+# also in grayscale and 20x underexposed; only MST 10 at JPEG quality 5 is missed.)
+@pytest.mark.parametrize("level", [1, 4, 8, 10])
+@pytest.mark.parametrize("variant", ["colour", "grayscale", "underexposed"])
+def test_detects_every_skin_tone(reference, astronaut, models_root, level, variant):
+    img = _retone(astronaut, reference, level)
+    if variant == "grayscale":
+        img = np.repeat(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)[..., None], 3, axis=2)
+    elif variant == "underexposed":
+        img = _lin_to_srgb(_srgb_to_lin(img) * 0.05)
+    x, y = reference.face.landmarks.points[50, :2].astype(int)  # the right cheek: the re-toning reached it
+    cheek = _srgb_to_lin(img[y - 3 : y + 4, x - 3 : x + 4]).mean() / (0.05 if variant == "underexposed" else 1)
+    before = _srgb_to_lin(astronaut[y - 3 : y + 4, x - 3 : x + 4]).mean()
+    assert cheek > 1.2 * before if level < 6 else cheek < 0.5 * before  # the photo's skin counts as MST 6
+    det = detect(img, S, models_root)
+    assert _mean_err(det.face.landmarks.points[:, :2], reference.face.landmarks.points[:, :2]) < 0.03 * _face_size(reference)
+
+
 def test_small_face_in_large_photo(astronaut, models_root):
     """A 40-pixel face in a 12-megapixel photo is found by the tiled full-range pass."""
     from skimage import data
