@@ -293,6 +293,7 @@ def test_train_loop_snapshots(tmp_path):
     lines = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [x["kimg"] for x in lines] == [0.008, 0.016]
     assert len(lines[0]["fake_mean"]) == 7 and np.isfinite(lines[-1]["loss_g"])
+    assert [x["data_samples"] for x in lines] == [len(data)] * 2
     assert sorted(p.name for p in (tmp_path / "samples").iterdir()) == ["kimg0000.01.png", "kimg0000.02.png"]
     import cv2
 

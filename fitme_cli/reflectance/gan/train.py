@@ -312,7 +312,10 @@ def snapshot(state: TrainState, run_dir: Path, data: torch.Tensor, losses: list[
     for k in losses[0] if losses else {}:
         vals = [d[k] for d in losses if np.isfinite(d[k])]
         mean[k] = float(np.mean(vals)) if vals else float("nan")
+    # data_samples: a resume may bring a bigger dataset (the BRDF-GAN run went from 2000 to 8000 at 92 kimg), and
+    # the card should be able to say what each stretch trained on
     rec = {"kimg": round(kimg, 3), "step": state.step, "wall_time_s": round(state.wall_time, 1), "img_per_s": round(rate, 2),
+           "data_samples": len(data),
            **{k: round(v, 4) for k, v in mean.items()},
            "fake_mean": [round(v, 3) for v in fm], "fake_std": [round(v, 3) for v in fs],
            "real_mean": [round(v, 3) for v in rm], "real_std": [round(v, 3) for v in rs]}
