@@ -168,6 +168,24 @@ def test_w_average_is_tracked_and_truncation_pulls_to_it():
     torch.testing.assert_close(a[0], a[1])  # psi = 0: every z maps to the average
 
 
+def test_noise_gain_scales_the_noise():
+    G = Generator(TINY)
+    for name, mod in G.synthesis.named_modules():
+        if hasattr(mod, "noise_strength"):
+            mod.noise_strength.data.fill_(0.5)  # trained nets have non-zero strengths; a new one has zeros
+    ws = G.ws(torch.randn(2, TINY.z_dim))
+    with torch.no_grad():
+        full = G.synthesis(ws, noise_mode="const").cat()
+        none = G.synthesis(ws, noise_mode="none").cat()
+        torch.testing.assert_close(G.synthesis(ws, noise_mode="const", noise_gain=1.0).cat(), full, rtol=0, atol=0)
+        torch.testing.assert_close(G.synthesis(ws, noise_mode="const", noise_gain=0.0).cat(), none, rtol=0, atol=0)
+        half = G.synthesis(ws, noise_mode="const", noise_gain=0.5).cat()
+    d_half, d_full = (half - none).abs().mean(), (full - none).abs().mean()
+    assert d_full > 1e-3 and 0.2 * d_full < d_half < 0.8 * d_full
+    with pytest.raises(ValueError, match="noise_gain must be in \\[0, 1\\], got 1.5"):
+        G.synthesis(ws, noise_mode="const", noise_gain=1.5)
+
+
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="power of two"):
         GanSettings(resolution=100)

@@ -33,7 +33,7 @@ def test_fit_writes_the_documented_avatar_directory(avatar):
 
     out, output = avatar
     rep = json.loads((out / "avatar.json").read_text())
-    assert rep["schema"] == "1.0" and rep["settings"]["preset"] == "fast"
+    assert rep["schema"] == "1.1" and rep["settings"]["preset"] == "fast"
     (inp,) = rep["inputs"]
     assert len(inp["sha256"]) == 64 and inp["name"] == "astronaut" and inp["size"] == [512, 512]
     q = inp["quality"]
@@ -48,6 +48,9 @@ def test_fit_writes_the_documented_avatar_directory(avatar):
     params = load_file(str(out / "params.safetensors"))
     assert params["ws"].ndim == 3 and params["camera_rotation"].shape == (1, 3, 3) and params["p_e"].shape[0] == 1
     assert params["photo_crop"].shape == (1, 128, 128, 3)
+    from fitme_cli.fitting.invert import InversionSettings
+
+    assert params["noise_gain"].tolist() == [InversionSettings().noise_gain]  # what the maps were made with
     assert load_file(str(out / "generator_tuned.safetensors"))  # the tuned layers
     ph = out / "photos" / "astronaut"
     assert cv2.imread(str(ph / "panel.png")).shape == (128, 4 * 128, 3)
@@ -84,6 +87,8 @@ def test_tune_continues_on_the_avatar(avatar, tmp_path):
 
     from safetensors.torch import load_file
 
+    from fitme_cli.fitting.invert import InversionSettings
+
     src, _ = avatar
     out = tmp_path / "copy"
     shutil.copytree(src, out)
@@ -95,6 +100,18 @@ def test_tune_continues_on_the_avatar(avatar, tmp_path):
     layers1 = load_file(str(out / "generator_tuned.safetensors"))
     assert set(layers1) == set(layers0) and any(not np.array_equal(layers0[k], layers1[k]) for k in layers0)
     assert rep["history"]["inversion"] == json.loads((src / "avatar.json").read_text())["history"]["inversion"]
+    assert load_file(str(out / "params.safetensors"))["noise_gain"].tolist() == load_file(str(src / "params.safetensors"))["noise_gain"].tolist()
+    # an avatar from before noise_gain (schema 1.0) was fitted at full noise, and reads so
+    from safetensors.torch import save_file
+
+    from fitme_cli.fitting.avatar import load_avatar
+
+    old = tmp_path / "old"
+    shutil.copytree(src, old)
+    params = load_file(str(old / "params.safetensors"))
+    del params["noise_gain"]
+    save_file(params, str(old / "params.safetensors"))
+    assert load_avatar(old).inversion.noise_gain == 1.0 and load_avatar(src).inversion.noise_gain == InversionSettings().noise_gain
     # not an avatar: clear errors
     r = CliRunner().invoke(main, ["tune", str(tmp_path / "nope")])
     assert r.exit_code == 23 and "not an avatar" in r.output

@@ -125,3 +125,10 @@ def test_effects_forced_without_the_selector_get_their_lights(models_root, force
     assert (res.lights.sh is not None) == ("sh_ambient" in forced)
     assert res.lights.count == (2 if "multi_light" in forced else 1)
     assert all(np.isfinite(list(h.values())).all() for h in res.history)
+
+
+def test_noise_gain_is_checked():
+    from fitme_cli.fitting.invert import InversionSettings
+
+    with pytest.raises(ValueError, match=r"noise_gain must be in \[0, 1\], got -0.1"):
+        InversionSettings(noise_gain=-0.1)

@@ -256,8 +256,8 @@ def _fit(models, subject, iterations: int, size: int = 128):
     cam0 = Camera(*(torch.cat([getattr(c, k) for c in cams]) for k in ("focal", "principal", "rotation", "translation")),
                   size, size)
     with torch.no_grad():
-        maps0 = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).expand(1, G.settings.num_ws, -1), noise_mode="const"),
-                            G.settings)
+        maps0 = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).expand(1, G.settings.num_ws, -1), noise_mode="const",
+                                        noise_gain=InversionSettings().noise_gain), G.settings)
     p_s0, p_e0 = sm.zeros(subject.n_views)
     start = evaluate_fit(subject, sm, p_s0[:1], p_e0, cam0, maps0, to_photo)
     pre = preset("fast")
@@ -290,6 +290,9 @@ def test_one_view_fit_recovers_landmarks_and_albedo(one_view):
     #   identity shape (p_s, face region, rigid) 1.397 -> 1.392 mm; posed shape (p_s + p_e) 1.42 -> 1.51 mm
     # seeds 0-5: landmarks 3.3-5.5 px (from 5.7-9.2), Delta E 1.3-7.2 (from 12.9-39.8). Those shape figures
     # predate p_s in prior standard deviations; since: 1.397 -> 1.186 mm (the next test)
+    # 92 kimg model, noise gain 0.35 (2026-11-24, 1 thread): landmarks 6.03 -> 3.38 px; Delta E 6.56 -> 2.92 (its
+    # W average is already close to this subject), after the gain 5.73 -> 2.88; L1 0.027 -> 0.014; identity
+    # shape 1.397 -> 1.237 mm, posed 1.416 -> 1.348 mm
     start, fit, seconds = one_view
     assert fit.landmark_px < 4.5 and fit.landmark_px < 0.6 * start.landmark_px
     # with the coarse phase on 128^2 maps (was 64^2): landmarks 3.14 px, Delta E 5.07 (1.71 after the gain:
@@ -302,7 +305,11 @@ def test_one_view_fit_recovers_landmarks_and_albedo(one_view):
     # the shape only within bounds (see test_one_view_fit_improves_the_identity_shape)
     assert fit.shape.mean_mm < 1.6 and fit.shape.mean_mm <= start.shape.mean_mm + 0.1
     assert fit.shape_posed_mean_mm < 1.8 and fit.shape_posed_mean_mm <= start.shape_posed_mean_mm + 0.25
-    assert fit.normals_deg < 1.0  # the GAN's detail normals are nearly flat: a sanity bound only
+    # the 35 kimg model's detail normals were nearly flat (0.08 -> 0.07 degrees). The 92 kimg model's carry
+    # grain from the generator's fixed noise, which the fit turns down (InversionSettings.noise_gain 0.35;
+    # the subject has all of it): 3.77 -> 3.52 degrees. Nothing in a photo pins that grain, so the bound
+    # is only that the fit does not make the normals worse than its start
+    assert fit.normals_deg < 5.0 and fit.normals_deg <= start.normals_deg + 0.25
 
 
 def test_one_view_fit_improves_the_identity_shape(one_view):
@@ -326,7 +333,10 @@ def test_three_view_fit_recovers_landmarks_and_albedo(three_views):
     start, fit, seconds = three_views
     assert fit.landmark_px < 5.0 and fit.landmark_px < 0.65 * start.landmark_px
     assert fit.albedo.delta_e < 11.0 and fit.albedo.delta_e < 0.4 * start.albedo.delta_e
-    assert fit.albedo.delta_e_gain < 3.0 and fit.albedo.delta_e_gain < 0.3 * start.albedo.delta_e_gain
+    # 92 kimg model, noise gain 0.35 (2026-11-24, 1 thread, training paused): landmarks 7.67 -> 4.35 px; Delta E
+    # 28.6 -> 4.23, after the gain 6.45 -> 2.69 (its W average starts closer than the 35 kimg model's 12.4: the
+    # ratio bound was 0.3 of that start); identity shape 0.948 -> 0.867 mm, posed 0.938 -> 0.902 mm
+    assert fit.albedo.delta_e_gain < 3.0 and fit.albedo.delta_e_gain < 0.5 * start.albedo.delta_e_gain
     # the second VM: identity shape 0.881 -> 0.999 mm (the start is already within 1 mm here)
     assert fit.shape.mean_mm < 1.1 and fit.shape.mean_mm <= start.shape.mean_mm + 0.15
     assert fit.shape_posed_mean_mm < 1.1 and fit.shape_posed_mean_mm <= start.shape_posed_mean_mm + 0.15

@@ -1,6 +1,6 @@
 """The whole-fit stability suite: hard photos that must still give a finite, converging fit.
 
-Cases (from one synthetic subject, so nothing is downloaded): extreme yaw +-80 degrees (rendered),
+Cases (from one synthetic subject, ``StabilitySettings.seed``, so nothing is downloaded): extreme yaw +-80 degrees (rendered),
 strong side light (re-rendered with one light from 80 degrees off the camera and almost no ambient),
 very dark (linear x 0.05) and overexposed (linear x 4, clipped) photos, sunglasses (a dark band over the
 eyes), a tiny face (the photo at 0.22 x in a 768^2 canvas; also as from a 340 mm lens), heavy JPEG (quality 5) and grayscale; plus
@@ -30,7 +30,12 @@ class StabilitySettings:
     render_size: int = 128
     coarse_fraction: float = 0.6  # the fast preset's
     size: int = 512  # synthetic photo side
-    seed: int = 1
+    # the subject must be one the detector finds in every degraded copy but the extreme yaws, or the suite
+    # tests detection, not fit stability. The 92 kimg BRDF-GAN's seed-1 subject is very dark, and BlazeFace
+    # misses its grayscale and JPEG-q5 copies: synthetic renders have no eyeballs (docs/perception.md, "Skin
+    # tone"; real photos re-toned to every Monk level are found, tests/test_detect.py). Seeds 1-6 with that
+    # model: every case that found a face passed every check; seed 3 found a face in all 9 non-yaw cases
+    seed: int = 3
     cases: tuple[str, ...] = CASES
 
     def __post_init__(self) -> None:

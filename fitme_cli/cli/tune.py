@@ -55,7 +55,7 @@ def command(avatar_dir: Path, iterations: int, device: str, threads: int | None)
     from ..reflectance.gan.networks import decode_maps
 
     with torch.no_grad():  # the inverted maps, before any tuning: the chromaticity loss's reference
-        inverted = decode_maps(G.synthesis(av.inversion.ws, noise_mode="const"), G.settings)
+        inverted = decode_maps(G.synthesis(av.inversion.ws, noise_mode="const", noise_gain=av.inversion.noise_gain), G.settings)
     if av.tuned:
         names = dict(G.named_parameters())
         unknown = [k for k in av.tuned if k not in names or names[k].shape != av.tuned[k].shape]

@@ -39,7 +39,7 @@ from .invert import InversionResult, PhotoInput
 __all__ = ["SCHEMA_VERSION", "PhotoRecord", "Avatar", "check_output_dir", "staging_dir",
            "publish_dir", "save_params", "load_avatar"]
 
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"  # 1.1: params.noise_gain
 
 
 @dataclass(frozen=True)
@@ -153,6 +153,7 @@ def save_params(path: Path, inv: InversionResult, photos: list[PhotoInput]) -> N
          "photo_to_photo": torch.from_numpy(np.stack([p.to_photo for p in photos]).astype(np.float64))}
     if li.sh is not None:
         t["light_sh"] = li.sh
+    t["noise_gain"] = torch.tensor([inv.noise_gain], dtype=torch.float64)
     save_file({k: v.detach().cpu().contiguous() for k, v in t.items()}, str(path))
 
 
@@ -202,5 +203,6 @@ def load_avatar(path: Path) -> Avatar:
         raise AvatarInvalid(f"avatar.json and params disagree or lack a field: {e}", path) from None
     empty = ReflectanceMaps(torch.zeros(1, 3, 1, 1), torch.zeros(1, 1, 1, 1), torch.zeros(1, 3, 1, 1))
     inv = InversionResult(t["ws"], t["p_s"], t["p_e"], cam, lights, empty, history, effects, None,
-                          report.get("effects", {}).get("coarse_residuals", {}))
+                          report.get("effects", {}).get("coarse_residuals", {}),
+                          float(t["noise_gain"][0]) if "noise_gain" in t else 1.0)  # avatars before it: full noise
     return Avatar(path, report, records, photos, inv, tuned)

@@ -57,7 +57,16 @@ class InversionSettings:
     forced_effects: tuple[tuple[str, bool], ...] = ()  # user overrides, (name, on) pairs; always win
     selection_steps: int = 8  # Adam steps that fit a candidate second light or SH environment
     selector: SelectorSettings = field(default_factory=SelectorSettings)
+    # the generator's fixed noise maps at this share of their trained strength. They are nobody's grain:
+    # W cannot steer them, and at full strength the 92 kimg model's grain and low-frequency ripples stay
+    # in every fit. Measured on the three sample photos (FaceNet similarity of photo and render,
+    # docs/fitting.md "Noise gain"): default preset 0.513 at 1, 0.570 at 0.35, 0.541 at 0.
+    noise_gain: float = 0.35
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.noise_gain <= 1.0:
+            raise ValueError(f"InversionSettings.noise_gain must be in [0, 1], got {self.noise_gain}")
 
 
 @dataclass(frozen=True)
@@ -100,6 +109,7 @@ class InversionResult:
     effects: Effects  # the effects of the fine phase (and of the final render)
     choice: EffectChoice | None  # the selector's decision and reasons; None when not selected
     coarse_residuals: dict[str, float]  # photometric residual of the coarse fit per candidate effect
+    noise_gain: float = 1.0  # the generator's noise gain the maps were made with (tuning keeps it)
 
 
 @dataclass(frozen=True)
@@ -345,7 +355,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     for it in range(s.iterations):
         res = s.coarse_resolution if it < n_coarse and s.coarse_resolution < r_full else None
         ws = all_ws()
-        maps = decode_maps(G.synthesis(ws, noise_mode="const", max_resolution=res), G.settings)
+        maps = decode_maps(G.synthesis(ws, noise_mode="const", max_resolution=res, noise_gain=s.noise_gain), G.settings)
         if it == select_at:
             select(maps)
         p_s = shape_coeffs()
@@ -367,14 +377,14 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
             progress(it, s.iterations, rec)
     with torch.no_grad():
         ws = all_ws().contiguous()
-        maps = decode_maps(G.synthesis(ws, noise_mode="const"), G.settings)
+        maps = decode_maps(G.synthesis(ws, noise_mode="const", noise_gain=s.noise_gain), G.settings)
         cam = pb.camera(aa, trans)
         lights = lights_now()
     cam = Camera(cam.focal.detach(), cam.principal.detach(), cam.rotation.detach(), cam.translation.detach(), pb.size, pb.size)
     lights = Lights(lights.ambient.detach(), lights.direction.detach(), lights.colour.detach(),
                     sh=None if lights.sh is None else lights.sh.detach())
     return InversionResult(ws.detach(), shape_coeffs().detach(), p_e.detach(), cam, lights, maps, history, effects, choice,
-                           residuals)
+                           residuals, s.noise_gain)
 
 
 def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_model, descriptor,
@@ -397,7 +407,7 @@ def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_mod
     reference = inv.maps.albedo.detach()
     history: list[dict[str, float]] = []
     for it in range(s.iterations):
-        maps = decode_maps(G.synthesis(inv.ws, noise_mode="const"), G.settings)
+        maps = decode_maps(G.synthesis(inv.ws, noise_mode="const", noise_gain=inv.noise_gain), G.settings)
         terms = pb.evaluate(maps, inv.p_s, inv.p_e, inv.cameras, inv.lights, s.effects or inv.effects, with_landmarks=False,
                             with_identity=False)
         terms["flip"] = flip_loss(maps.albedo, mapped.to(pb.device)).expand(pb.n)
@@ -416,5 +426,5 @@ def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_mod
     trained = {id(p) for p in params}
     tuned = {k: v.detach().clone() for k, v in G.named_parameters() if id(v) in trained}
     with torch.no_grad():
-        maps = decode_maps(G.synthesis(inv.ws, noise_mode="const"), G.settings)
+        maps = decode_maps(G.synthesis(inv.ws, noise_mode="const", noise_gain=inv.noise_gain), G.settings)
     return TuningResult(tuned, maps, history)

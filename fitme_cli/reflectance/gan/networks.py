@@ -186,13 +186,13 @@ class _SynthesisLayer(nn.Module):
         self.register_buffer("noise_const", torch.randn(res, res))
         self.up, self.res, self.clamp = up, res, clamp
 
-    def forward(self, x: torch.Tensor, w: torch.Tensor, noise_mode: str) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, w: torch.Tensor, noise_mode: str, noise_gain: float = 1.0) -> torch.Tensor:
         styles = self.affine(w)
         x = modulated_conv2d(x, self.weight, styles, demodulate=True, up=self.up)
         if noise_mode == "random":
-            x = x + torch.randn(x.shape[0], 1, self.res, self.res, device=x.device, dtype=x.dtype) * self.noise_strength
+            x = x + torch.randn(x.shape[0], 1, self.res, self.res, device=x.device, dtype=x.dtype) * (self.noise_strength * noise_gain)
         elif noise_mode == "const":
-            x = x + self.noise_const * self.noise_strength
+            x = x + self.noise_const * (self.noise_strength * noise_gain)
         return bias_lrelu(x, self.bias, clamp=self.clamp)
 
 
@@ -225,11 +225,11 @@ class _SynthesisBlock(nn.Module):
         self.conv1 = _SynthesisLayer(c_out, c_out, s.w_dim, res, up=False, clamp=s.conv_clamp)
         self.to_image = _ToImage(c_out, img_channels, s.w_dim, s.conv_clamp)
 
-    def forward(self, x, img, ws, noise_mode):
+    def forward(self, x, img, ws, noise_mode, noise_gain=1.0):
         """ws: (B, 3, w_dim) for conv0, conv1, toImage (the 4x4 block uses the last two)."""
         if self.conv0 is not None:
-            x = self.conv0(x, ws[:, 0], noise_mode)
-        x = self.conv1(x, ws[:, 1], noise_mode)
+            x = self.conv0(x, ws[:, 0], noise_mode, noise_gain)
+        x = self.conv1(x, ws[:, 1], noise_mode, noise_gain)
         y = self.to_image(x, ws[:, 2])
         img = y if img is None else upsample2x(img) + y
         return x, img
@@ -267,14 +267,19 @@ class SynthesisNetwork(nn.Module):
         idx = [max(i, 0), i + 1, i + 2]
         return ws[:, idx]
 
-    def forward(self, ws: torch.Tensor, noise_mode: str = "random", max_resolution: int | None = None) -> GanImages:
+    def forward(self, ws: torch.Tensor, noise_mode: str = "random", max_resolution: int | None = None,
+                noise_gain: float = 1.0) -> GanImages:
         """``max_resolution``: stop after that block (a power of two <= resolution) and return the
-        images at that resolution: the coarse-to-fine inversion's cheap early stage."""
+        images at that resolution: the coarse-to-fine inversion's cheap early stage. ``noise_gain``
+        scales every layer's learned noise strength (1: as trained; 0: the same as noise_mode "none"):
+        the fit turns the fixed noise down (fitting/invert.py, ``InversionSettings.noise_gain``)."""
         s = self.s
         if ws.ndim != 3 or ws.shape[1:] != (s.num_ws, s.w_dim):
             raise ValueError(f"expected ws of shape (B, {s.num_ws}, {s.w_dim}), got {tuple(ws.shape)}")
         if noise_mode not in ("random", "const", "none"):
             raise ValueError(f"noise_mode must be random, const or none, got {noise_mode!r}")
+        if not 0.0 <= noise_gain <= 1.0:
+            raise ValueError(f"noise_gain must be in [0, 1], got {noise_gain}")
         top = s.resolution if max_resolution is None else max_resolution
         if top not in s.resolutions:
             raise ValueError(f"max_resolution must be one of {s.resolutions}, got {max_resolution}")
@@ -283,7 +288,7 @@ class SynthesisNetwork(nn.Module):
         for res in s.resolutions:
             if res >= s.branch_resolution or res > top:
                 break
-            x, img = self.trunk[f"b{res}"](x, img, self._w_slice(ws, res), noise_mode)
+            x, img = self.trunk[f"b{res}"](x, img, self._w_slice(ws, res), noise_mode, noise_gain)
         mean = self.mean_image[None]
         if top < s.resolution:
             mean = torch.nn.functional.adaptive_avg_pool2d(mean, top)
@@ -295,7 +300,7 @@ class SynthesisNetwork(nn.Module):
             xm, im = x, None if img is None else img[:, start : start + ch]
             for res in s.resolutions:
                 if s.branch_resolution <= res <= top:
-                    xm, im = self.branches[name][f"b{res}"](xm, im, self._w_slice(ws, res), noise_mode)
+                    xm, im = self.branches[name][f"b{res}"](xm, im, self._w_slice(ws, res), noise_mode, noise_gain)
             outs.append(im + mean[:, start : start + ch])
             start += ch
         return GanImages(*outs)
