@@ -144,9 +144,13 @@ def test_fit_is_deterministic_with_a_seed(photos, tmp_path):
 def test_fit_skips_a_bad_photo_and_refuses_different_people(photos, tmp_path):
     out = tmp_path / "a"
     r = CliRunner().invoke(main, ["fit", str(photos["astronaut"]), str(tmp_path / "missing.jpg"), "-o", str(out),
-                                  *QUICK, "--iterations", "2"])
+                                  *QUICK, "--iterations", "2", "--noise-gain", "1"])
     assert r.exit_code == 10 and "skipped" in r.output and (out / "avatar.json").is_file()
-    assert len(json.loads((out / "avatar.json").read_text())["inputs"]) == 1
+    rep = json.loads((out / "avatar.json").read_text())
+    assert len(rep["inputs"]) == 1
+    from safetensors.torch import load_file
+
+    assert rep["settings"]["inversion"]["noise_gain"] == 1.0 and load_file(str(out / "params.safetensors"))["noise_gain"].tolist() == [1.0]
     r = CliRunner().invoke(main, ["fit", str(photos["astronaut"]), str(photos["grace_hopper"]), "-o", str(tmp_path / "b"),
                                   *QUICK, "--iterations", "2"])
     assert r.exit_code == 24 and "different people" in r.output and not (tmp_path / "b").exists()
@@ -163,6 +167,8 @@ def test_fit_errors(tmp_path):
     assert r.exit_code == 16, r.output
     r = CliRunner().invoke(main, ["fit", str(blank), "-o", str(tmp_path / "c"), "--effects", "glitter"])
     assert r.exit_code == 2 and "unknown effect" in r.output
+    r = CliRunner().invoke(main, ["fit", str(blank), "-o", str(tmp_path / "c"), "--noise-gain", "1.5"])
+    assert r.exit_code == 2 and "--noise-gain" in r.output
     r = CliRunner().invoke(main, ["fit", str(blank), "-o", str(tmp_path / "d"), "--device", "cuda:7"])
     import torch
 

@@ -21,13 +21,15 @@ __all__ = ["command"]
 @click.option("--no-tune", is_flag=True, help="Skip tuning the generator.")
 @click.option("--render-size", type=click.Choice(["128", "256", "384", "512"]), help="Fitting crop size (default: the preset's).")
 @click.option("--effects", default="", help="Force effects on/off, e.g. '+shadows,-specular' (others: chosen per scene).")
+@click.option("--noise-gain", type=click.FloatRange(0.0, 1.0), help="Share of BRDF-GAN's fixed noise (fine grain) in the maps: "
+              "1 as trained, 0 none (default 0.35: fits the person better; docs/fitting.md).")
 @click.option("--device", default="cpu", show_default=True, help="torch device: cpu, cuda, cuda:1.")
 @click.option("--seed", default=0, show_default=True)
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
 @click.option("--force", is_flag=True, help="Replace an existing avatar directory; fit photos that look like different people.")
 def command(photos: tuple[Path, ...], out_dir: Path, preset_name: str, iterations: int | None, tune_iterations: int | None,
-            no_tune: bool, render_size: str | None, effects: str, device: str, seed: int, threads: int | None,
-            force: bool) -> None:
+            no_tune: bool, render_size: str | None, effects: str, noise_gain: float | None, device: str, seed: int,
+            threads: int | None, force: bool) -> None:
     """Fit an avatar to PHOTO... (one person): shape, expressions, reflectance maps, cameras and lights.
 
     Several photos share W and the identity shape; each has its own camera, lights and expression.
@@ -119,7 +121,8 @@ def command(photos: tuple[Path, ...], out_dir: Path, preset_name: str, iteration
     timings["load_s"] = time.perf_counter() - t
     inv_s = InversionSettings(iterations=iterations, render_size=size, coarse_fraction=pre.coarse_fraction,
                               coarse_resolution=pre.coarse_resolution, select_effects=pre.select_effects,
-                              forced_effects=tuple(forced.items()), seed=seed)
+                              forced_effects=tuple(forced.items()), seed=seed,
+                              noise_gain=InversionSettings.noise_gain if noise_gain is None else noise_gain)
     bar = StageBar(iterations + tune_iterations)
     staging = None
     try:
