@@ -112,14 +112,17 @@ def test_brightness(reference, astronaut, models_root, gain, gamma):
     assert _mean_err(det.face.landmarks.points[:, :2], reference.face.landmarks.points[:, :2]) < 0.03 * _face_size(reference)
 
 
-def _srgb_to_lin(x: np.ndarray) -> np.ndarray:
-    x = x / 255.0
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+def _srgb_to_lin(img: np.ndarray) -> np.ndarray:
+    """uint8 sRGB -> float linear, with the map I/O's curve."""
+    from fitme_cli.io.maps import srgb_to_linear
+
+    return srgb_to_linear(img / 255.0)
 
 
 def _lin_to_srgb(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0, 1)
-    return np.round(255 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)).astype(np.uint8)
+    from fitme_cli.io.maps import linear_to_srgb
+
+    return np.round(255 * linear_to_srgb(x)).astype(np.uint8)
 
 
 def _retone(photo: np.ndarray, det, level: int) -> np.ndarray:
