@@ -12,7 +12,7 @@ import numpy as np
 
 from fitme_cli.io.maps import linear_to_srgb
 from fitme_cli.perception.registry import ensure_models
-from fitme_cli.reflectance.augment import MONK_SRGB
+from fitme_cli.reflectance.augment import MONK_SRGB, monk_albedo
 from fitme_cli.reflectance.biophysical import skin_rgb
 from fitme_cli.reflectance.skin_data import SkinDataSettings, generate_sample, skin_layout
 
@@ -75,10 +75,8 @@ def mst_figure():
     w = 40
     top = np.concatenate([np.full((60, w, 3), to8(linear_to_srgb(c)), np.uint8) for c in rgb], 1)
     sw = []
-    for hx in MONK_SRGB:
-        c = np.array([int(hx[1 + 2 * k : 3 + 2 * k], 16) for k in range(3)], np.float32) / 255
-        lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4) * 0.65
-        sw.append(np.full((60, 84, 3), to8(linear_to_srgb(lin)), np.uint8))
+    for level in range(1, len(MONK_SRGB) + 1):
+        sw.append(np.full((60, 84, 3), to8(linear_to_srgb(monk_albedo(level))), np.uint8))
     bottom = np.concatenate(sw, 1)
     W = max(top.shape[1], bottom.shape[1])
     pad = lambda im: np.concatenate([im, np.full((im.shape[0], W - im.shape[1], 3), 255, np.uint8)], 1)  # noqa: E731

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import WrongLayout
+from ..io.maps import srgb_to_linear
 
 __all__ = ["MONK_SRGB", "AugmentSettings", "monk_albedo", "skin_mask", "match_to_level", "augment_albedo"]
 
@@ -41,8 +42,7 @@ def monk_albedo(level: int) -> np.ndarray:
         raise ValueError(f"Monk Skin Tone level must be 1..10, got {level}")
     h = MONK_SRGB[level - 1].lstrip("#")
     srgb = np.array([int(h[i : i + 2], 16) / 255.0 for i in (0, 2, 4)])
-    lin = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
-    return (lin * _ALBEDO_SCALE).astype(np.float32)
+    return (srgb_to_linear(srgb) * _ALBEDO_SCALE).astype(np.float32)
 
 
 def _forehead_stats(albedo: np.ndarray, forehead: np.ndarray) -> tuple[np.ndarray, float]:

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import torch
 
+from ..ops.srgb import linear_to_srgb as _linear_to_srgb_torch
+from ..ops.srgb import srgb_to_linear
 from .lights import Lights, sh_basis
 
 __all__ = ["safe_normalize", "light_vectors", "diffuse_irradiance", "specular_reflectance", "tangent_to_world",
@@ -140,21 +142,12 @@ def subsurface_scatter(irradiance: torch.Tensor, operator: torch.Tensor | tuple[
     return out.permute(1, 0, 2)
 
 
-def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
-    """sRGB [0, 1] -> linear, with finite gradients at 0."""
-    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
-
-
 def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
     """Linear [0, inf) -> sRGB [0, 1] (clipped), with finite gradients at 0. CPU float tensors take one
-    numba loop each way (``_kernels.srgb_encode``); ``_linear_to_srgb_torch`` is its reference."""
+    numba loop each way (``_kernels.srgb_encode``); ``_linear_to_srgb_torch`` (``ops.srgb``) is its
+    reference. ``srgb_to_linear`` is ``ops.srgb``'s, re-exported."""
     if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
         from ._kernels import srgb_encode
 
         return srgb_encode(x)
     return _linear_to_srgb_torch(x)
-
-
-def _linear_to_srgb_torch(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp(0, 1)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ...ops.srgb import linear_to_srgb, srgb_to_linear
 from ..maps import ReflectanceMaps
 from .ops import bias_lrelu, conv_down2x, downsample2x, modulated_conv2d, upsample2x
 
@@ -84,19 +85,9 @@ class GanImages:
         return GanImages(x[:, 0:3], x[:, 3:4], x[:, 4:7])
 
 
-def _srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp(0, 1)
-    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
-
-
-def _linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
-    x = x.clamp(0, 1)
-    return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
-
-
 def decode_maps(images: GanImages, s: GanSettings) -> ReflectanceMaps:
     """Network space -> physical maps (differentiable; values clamped into range)."""
-    albedo = _srgb_to_linear((images.albedo + 1) / 2)
+    albedo = srgb_to_linear(((images.albedo + 1) / 2).clamp(0, 1))
     specular = (images.specular * s.specular_scale + s.specular_offset).clamp(0, 1)
     n = images.normals * s.normal_scale
     # a generator may output z <= 0 early in training; keep the normal in the outward hemisphere
@@ -108,7 +99,7 @@ def encode_maps(maps: ReflectanceMaps, s: GanSettings) -> GanImages:
     """Physical maps -> network space (the inverse of ``decode_maps`` on in-range data)."""
     n = maps.normals
     n = torch.cat([n[:, :2], n[:, 2:3] - 1], 1) / s.normal_scale
-    return GanImages(_linear_to_srgb(maps.albedo) * 2 - 1, (maps.specular.clamp(0, 1) - s.specular_offset) / s.specular_scale, n)
+    return GanImages(linear_to_srgb(maps.albedo) * 2 - 1, (maps.specular.clamp(0, 1) - s.specular_offset) / s.specular_scale, n)
 
 
 # --- layers with equalised learning rate -----------------------------------------------------------

@@ -169,7 +169,7 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: flo
     atomic_write_image(out_dir / "brdf_gan_data.png", _half(np.concatenate([grid[: 8 * r], grid[8 * r :]], 1)))
     paths.append(out_dir / "brdf_gan_data.png")
 
-    from .networks import _linear_to_srgb
+    from ...ops.srgb import linear_to_srgb
 
     rows = []
     g = torch.Generator().manual_seed(3)
@@ -178,7 +178,7 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: flo
             w = G.ws(torch.randn(2, G.settings.z_dim, generator=g), truncation_psi)
             t = torch.linspace(0, 1, 8).view(-1, 1, 1)
             m = decode_maps(G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const"), G.settings)
-            alb = _linear_to_srgb(m.albedo)
+            alb = linear_to_srgb(m.albedo)
             nrm = (m.normals * 2.5 + 0.5).clamp(0, 1)
             crop = slice(r // 4, 3 * r // 4)  # the face
             rows.append(torch.cat(list(torch.cat([alb, nrm], 2)[:, :, :, crop]), 2))
