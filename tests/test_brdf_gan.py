@@ -193,6 +193,23 @@ def test_settings_are_checked():
         GanSettings(resolution=64, branch_resolution=128)
     with pytest.raises(ValueError, match="even number"):
         TrainSettings(batch=3)
+    with pytest.raises(ValueError, match="ema_kimg must be > 0"):
+        TrainSettings(ema_kimg=0.0)
+    with pytest.raises(ValueError, match="learning rates must be > 0"):
+        TrainSettings(g_lr=0.0)
+
+
+def test_set_learning_rates_after_a_resume_change():
+    import dataclasses
+
+    from fitme_cli.reflectance.gan.train import set_learning_rates
+
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1))
+    assert state.opt_D.param_groups[0]["lr"] == pytest.approx(0.0025 * 16 / 17)  # lazy R1 every 16 steps
+    state.train = dataclasses.replace(state.train, g_lr=0.001, d_lr=0.0005)
+    set_learning_rates(state)
+    assert state.opt_G.param_groups[0]["lr"] == 0.001
+    assert state.opt_D.param_groups[0]["lr"] == pytest.approx(0.0005 * 16 / 17)
 
 
 def test_ada_augment():
@@ -361,9 +378,16 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert json.loads((run / "config.json").read_text())["gan"]["resolution"] == 16
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 17 and "--resume" in r.output
-    r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--threads", "1"])
+    r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
+                                  "--threads", "1"])
     assert r.exit_code == 0, r.output
-    assert load_checkpoint(run / "checkpoint.safetensors").nimg == 16
+    state = load_checkpoint(run / "checkpoint.safetensors")
+    # the EMA half-life and the learning rates may change on resume, and the optimiser uses the new rate
+    assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
+    assert state.train.g_lr == 0.001 and state.train.d_lr == 0.0025
+    assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
+    r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
+    assert r.exit_code == 2 and "--ema-kimg" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--batch", "8"])
     assert r.exit_code == 2 and "--batch cannot change on --resume" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "other"), "--resume"])

@@ -11,7 +11,7 @@ __all__ = ["command"]
 
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers")
-_TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr")
+_TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg")
 
 
 @click.command("train")
@@ -31,6 +31,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--snapshot-kimg", type=float, help="Grid, metrics and checkpoint every this many kimg. [1]")
 @click.option("--g-lr", type=float, help="[0.0025]")
 @click.option("--d-lr", type=float, help="[0.0025]")
+@click.option("--ema-kimg", type=click.FloatRange(min=0, min_open=True),
+              help="Half-life of the generator EMA (the shipped G) in kimg. [batch * 10 / 32]")
 @click.option("--seed", type=int, help="[0]")
 @click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
@@ -54,7 +56,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..errors import InputNotFound, OutputNotWritable
     from ..reflectance.gan.data import load_dataset
     from ..reflectance.gan.networks import GanSettings
-    from ..reflectance.gan.train import TrainSettings, load_checkpoint, new_state, reset_mean_image, save_checkpoint, train
+    from ..reflectance.gan.train import (TrainSettings, load_checkpoint, new_state, reset_mean_image, save_checkpoint,
+                                         set_learning_rates, train)
 
     from ..reflectance.gan.data import find_samples
 
@@ -90,18 +93,20 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         if not ckpt.is_file():
             raise InputNotFound("nothing to resume: no checkpoint.safetensors in the run directory", run_dir)
         state = load_checkpoint(ckpt)
-        # the run length, snapshot cadence and augmentation may change on resume (turning ADA on when D
-        # starts to overfit is the usual move); the rest is the run's own, and saying otherwise is an error
-        changeable = ("kimg", "snapshot_kimg", "ada")
+        # the run length, snapshot cadence, augmentation, learning rates and EMA half-life may change on
+        # resume (turning ADA on when D starts to overfit, or lowering the rates, are the usual moves);
+        # the rest is the run's own, and saying otherwise is an error
+        changeable = ("kimg", "snapshot_kimg", "ada", "ema_kimg", "g_lr", "d_lr")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:
             raise click.BadParameter(f"{', '.join('--' + k.replace('_', '-') for k in fixed)} cannot change on --resume "
                                      f"(the run has {', '.join(f'{k}={getattr(state.train, k)}' for k in fixed)})")
-        new = {k: v for k, v in cfg["train"].items() if k in ("kimg", "snapshot_kimg")}
+        new = {k: v for k, v in cfg["train"].items() if k in ("kimg", "snapshot_kimg", "ema_kimg", "g_lr", "d_lr")}
         if flags.get("ada") is not None:
             new["ada"] = flags["ada"]
         state.train = dataclasses.replace(state.train, **new)
+        set_learning_rates(state)
         gan_settings = state.gan
         click.echo(f"resuming at {state.nimg / 1000:.2f} kimg", err=True)
     else:

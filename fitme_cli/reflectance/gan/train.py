@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from .ada import augment
 from .networks import Discriminator, GanSettings, Generator
 
-__all__ = ["TrainSettings", "TrainState", "new_state", "train_step", "save_checkpoint", "load_checkpoint",
+__all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator"]
 
 
@@ -50,6 +50,10 @@ class TrainSettings:
             raise ValueError(f"batch must be an even number >= 2, got {self.batch}")
         if self.kimg <= 0:
             raise ValueError(f"kimg must be > 0, got {self.kimg}")
+        if self.g_lr <= 0 or self.d_lr <= 0:
+            raise ValueError(f"learning rates must be > 0, got g_lr={self.g_lr}, d_lr={self.d_lr}")
+        if self.ema_kimg is not None and self.ema_kimg <= 0:
+            raise ValueError(f"ema_kimg must be > 0 or None (batch * 10 / 32), got {self.ema_kimg}")
 
 
 @dataclass
@@ -90,10 +94,24 @@ def new_state(gan: GanSettings, train: TrainSettings, data_mean: torch.Tensor | 
         G.to(memory_format=torch.channels_last)
         D.to(memory_format=torch.channels_last)
     G_ema = copy_generator(G)
-    c = train.r1_interval / (train.r1_interval + 1)  # lazy regularisation's lr / momentum correction
+    c = _lazy_r1_factor(train)
     opt_G = torch.optim.Adam(G.parameters(), lr=train.g_lr, betas=(0.0, train.beta2), eps=1e-8)
     opt_D = torch.optim.Adam(D.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
     return TrainState(gan, train, G, D, G_ema, opt_G, opt_D)
+
+
+def _lazy_r1_factor(train: TrainSettings) -> float:
+    """Lazy regularisation's correction of D's learning rate and momentum (StyleGAN2)."""
+    return train.r1_interval / (train.r1_interval + 1)
+
+
+def set_learning_rates(state: TrainState) -> None:
+    """Point both optimisers at ``state.train``'s learning rates (after a resume changed them); Adam's
+    moment estimates are kept."""
+    for group in state.opt_G.param_groups:
+        group["lr"] = state.train.g_lr
+    for group in state.opt_D.param_groups:
+        group["lr"] = state.train.d_lr * _lazy_r1_factor(state.train)
 
 
 def _ws(state: TrainState, z: torch.Tensor) -> torch.Tensor:
@@ -270,11 +288,11 @@ def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainStat
 def sample_grid(G: Generator, z: torch.Tensor, truncation_psi: float = 1.0) -> np.ndarray:
     """(rows * R, 3 * R, 3) uint8: per row A_D (sRGB) | A_S (grey) | N_S (0.5 + 2.5 n, contrast x5)."""
     from .networks import decode_maps
-    from .networks import _linear_to_srgb
+    from ...ops.srgb import linear_to_srgb
 
     with torch.no_grad():
         maps = decode_maps(G(z, truncation_psi=truncation_psi, noise_mode="const"), G.settings)
-    alb = _linear_to_srgb(maps.albedo)
+    alb = linear_to_srgb(maps.albedo)
     spec = maps.specular.expand(-1, 3, -1, -1).clamp(0, 1)
     nrm = maps.normals * 2.5 + 0.5  # tangent normals x5: detail normals are within a few degrees of +z
     rows = torch.cat([alb, spec, nrm], 3)  # (B, 3, R, 3R)
