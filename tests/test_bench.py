@@ -1,6 +1,7 @@
 """fitme bench: the report and regression logic on fabricated results (fast), and one real
 ``fitme bench --regress tests/bench_baseline.json`` through click's runner (~20-40 s at 1 thread)."""
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -8,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from fitme_cli.bench.regress import TOLERANCES, RegressSettings, Tolerance, compare, read_baseline, write_baseline
+from fitme_cli.bench.run import FitSettings
 from fitme_cli.bench.report import markdown_table, pareto_front, pareto_plots, summarise, write_csv
 from fitme_cli.bench.sweep import RunResult, Variant, variants
 
@@ -65,6 +67,15 @@ def test_variants_quick_is_a_subset_and_names_are_unique():
     assert len({v.name for v in full}) == len(full) and {v.name for v in q} <= {v.name for v in full}
     assert "preset best" not in {v.name for v in q} and "preset best" in {v.name for v in full}
     assert {v.views for v in q} == {1, 3}
+    def effective(s):  # the coarse resolution means nothing without a coarse phase
+        return dataclasses.replace(s, coarse_resolution=0) if s.coarse_fraction == 0 else s
+
+    for v in full:  # a row named for a change must change something
+        if not v.name.startswith("preset "):
+            assert effective(v.settings()) != effective(Variant("p", v.preset).settings()), v.name
+    assert effective(Variant("old row", coarse_resolution=32).settings()) == effective(Variant("p").settings())
+    assert Variant("c", coarse_fraction=0.4, coarse_resolution=64).settings().coarse_fraction == 0.4
+    assert FitSettings() == FitSettings.from_preset("fast")  # the documented defaults
     s = Variant("x", iterations=7, forced_effects=(("shadows", True),)).settings()
     assert s.iterations == 7 and s.render_size == 128 and s.forced_effects == (("shadows", True),)
     assert Variant.from_dict({"name": "y", "forced_effects": [["specular", False]]}).forced_effects == (("specular", False),)

@@ -99,6 +99,7 @@ def test_effect_selection_runs_at_the_coarse_switch_and_user_overrides_win(model
     assert set(r) == {"base", "shadows", "multi_light", "sh_ambient"} and all(np.isfinite(list(r.values())))
     assert r["multi_light"] < r["base"]  # a strong second light in the photo: a fitted fill light helps
     assert res.choice is not None and res.effects == res.choice.effects
+    assert res.selected_at == 2  # select_fraction 0.4 of 6 iterations, whatever the coarse phase
     assert res.effects.shadows and "forced" in res.choice.reasons["shadows"]
     assert res.effects.multi_light == (r["multi_light"] < 0.95 * r["base"])
     assert res.lights.count == (2 if res.effects.multi_light else 1)
@@ -127,8 +128,12 @@ def test_effects_forced_without_the_selector_get_their_lights(models_root, force
     assert all(np.isfinite(list(h.values())).all() for h in res.history)
 
 
-def test_noise_gain_is_checked():
+def test_inversion_settings_are_checked():
     from fitme_cli.fitting.invert import InversionSettings
 
     with pytest.raises(ValueError, match=r"noise_gain must be in \[0, 1\], got -0.1"):
         InversionSettings(noise_gain=-0.1)
+    with pytest.raises(ValueError, match=r"select_fraction must be in \[0, 1\], got 1.5"):
+        InversionSettings(select_fraction=1.5)
+    with pytest.raises(ValueError, match=r"coarse_fraction must be in \[0, 1\], got -0.2"):
+        InversionSettings(coarse_fraction=-0.2)

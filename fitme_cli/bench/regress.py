@@ -53,7 +53,7 @@ TOLERANCES: dict[str, Tolerance] = {
 
 @dataclass(frozen=True)
 class RegressSettings:
-    """The regression budget: the fast preset cut to ``iterations`` (keeps the coarse/fine split)."""
+    """The regression budget: the fast preset cut to ``iterations``."""
 
     iterations: int = 15
     synthetic_seeds: tuple[int, ...] = (1, 2)

@@ -32,11 +32,11 @@ METRICS: dict[str, bool] = {
 class FitSettings:
     """The knobs of one fit; the defaults are the fast preset (``fitting/presets.py``)."""
 
-    iterations: int = 50
+    iterations: int = 30
     tune_iterations: int = 0
     render_size: int = 128
-    coarse_fraction: float = 0.6
-    coarse_resolution: int = 64
+    coarse_fraction: float = 0.0
+    coarse_resolution: int = 128
     select_effects: bool = False
     forced_effects: tuple[tuple[str, bool], ...] = ()
     seed: int = 0

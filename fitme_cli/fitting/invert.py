@@ -5,8 +5,8 @@ lights and expression.
 Then tuning (Sec. 3.4.2): W frozen, only the generator's 4 middle synthesis layers train, against the
 perceptual, photometric, flip and chromaticity losses.
 
-The effect selector runs once, at the switch from the coarse to the fine phase: it measures the
-photometric residual of the coarse fit with the base effects and with each optional effect (a second
+The effect selector runs once, after ``select_fraction`` of the iterations: it measures the
+photometric residual of the fit so far with the base effects and with each optional effect (a second
 light and an SH environment fitted for a few steps with everything else frozen; shadows as they are)
 and keeps an effect only where it lowers the residual by the selector's threshold
 (``render.effects.select_effects``).
@@ -44,8 +44,12 @@ class InversionSettings:
     # differences summed over channels) is ~25x an LPIPS value for the same pair of faces
     lambdas: tuple[float, float, float, float, float, float, float] = (100.0, 0.5, 1.0, 1.0, 5e-2, 5e-4, 5e-4)
     jaw_weight: float = 0.3  # landmarks on the face outline slide along it: trust them less
-    coarse_fraction: float = 0.4  # share of iterations with the synthesis stopped at coarse_resolution
-    coarse_resolution: int = 128  # see presets.py: 64 jumps at the switch
+    # share of iterations with the synthesis stopped at coarse_resolution. Off by default: the 92 kimg
+    # generator's 256^2 branch blocks change the colours, not only the detail (stopped at 128^2 its
+    # albedo's red channel is 0.23 higher in network space), so W fitted on coarse maps lands the albedo
+    # at half its brightness (docs/fitting.md, "Coarse-to-fine")
+    coarse_fraction: float = 0.0
+    coarse_resolution: int = 128  # 64 jumps at the switch even with the 35 kimg model
     # the paper optimises W, one w for every layer; W+ (a w per layer) fits the photo more closely but
     # leaves the generator's distribution: noisy, striped albedo with the light baked in (paper Fig. 9d)
     w_plus: bool = False
@@ -53,7 +57,8 @@ class InversionSettings:
     # latent_prior.py; ~1 for a typical sample), or "paper", the mean squared distance to w_avg
     w_prior: str = "pnorm"
     effects: Effects = field(default_factory=Effects)  # the effects when ``select_effects`` is off
-    select_effects: bool = True  # choose the effects from the photos and the coarse fit
+    select_effects: bool = True  # choose the effects from the photos and the fit so far
+    select_fraction: float = 0.4  # the selector runs after this share of the iterations
     forced_effects: tuple[tuple[str, bool], ...] = ()  # user overrides, (name, on) pairs; always win
     selection_steps: int = 8  # Adam steps that fit a candidate second light or SH environment
     selector: SelectorSettings = field(default_factory=SelectorSettings)
@@ -67,6 +72,9 @@ class InversionSettings:
     def __post_init__(self) -> None:
         if not 0.0 <= self.noise_gain <= 1.0:
             raise ValueError(f"InversionSettings.noise_gain must be in [0, 1], got {self.noise_gain}")
+        for name in ("coarse_fraction", "select_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"InversionSettings.{name} must be in [0, 1], got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -108,8 +116,10 @@ class InversionResult:
     history: list[dict[str, float]]  # per iteration: total and each weighted loss (mean over photos)
     effects: Effects  # the effects of the fine phase (and of the final render)
     choice: EffectChoice | None  # the selector's decision and reasons; None when not selected
-    coarse_residuals: dict[str, float]  # photometric residual of the coarse fit per candidate effect
+    coarse_residuals: dict[str, float]  # photometric residual of the fit at the selection per candidate effect
+    # (the name is from when the selector ran at the end of the coarse phase; avatar.json keeps it)
     noise_gain: float = 1.0  # the generator's noise gain the maps were made with (tuning keeps it)
+    selected_at: int | None = None  # the iteration the effect selector ran at; None: it did not run
 
 
 @dataclass(frozen=True)
@@ -294,7 +304,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         raise ValueError(f"w_prior must be 'pnorm' or 'paper', got {s.w_prior!r}")
     effects = _base_effects(s)
     choice, residuals = None, {}
-    select_at = max(1, n_coarse) if s.select_effects and s.iterations > 1 else -1
+    select_at = max(1, int(s.select_fraction * s.iterations)) if s.select_effects and s.iterations > 1 else -1
     if effects.sh_ambient or effects.multi_light:  # forced without the selector: their lights must exist
         new = []
         if effects.sh_ambient:
@@ -384,7 +394,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     lights = Lights(lights.ambient.detach(), lights.direction.detach(), lights.colour.detach(),
                     sh=None if lights.sh is None else lights.sh.detach())
     return InversionResult(ws.detach(), shape_coeffs().detach(), p_e.detach(), cam, lights, maps, history, effects, choice,
-                           residuals, s.noise_gain)
+                           residuals, s.noise_gain, select_at if choice is not None else None)
 
 
 def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_model, descriptor,

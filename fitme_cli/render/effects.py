@@ -65,7 +65,7 @@ class SelectorSettings:
     min_face_px_for_specular: float = 96.0
     # share of skin pixels that must look like highlights (bright and desaturated)
     min_highlight_fraction: float = 0.003
-    # a second light, SH ambient or shadows stay off unless they lower the coarse fit's photometric
+    # a second light, SH ambient or shadows stay off unless they lower the fit-so-far's photometric
     # residual by at least this fraction
     min_residual_gain: float = 0.05
 
@@ -94,8 +94,9 @@ def select_effects(face_width_px: float, skin_rgb: np.ndarray, residuals: dict[s
     """Decide the effects for one scene.
 
     face_width_px: the face's width in the photo; skin_rgb: (N, 3) sRGB skin pixels; residuals: the
-    coarse fit's photometric residual with the base effects ("base") and with one extra effect each
-    ("multi_light", "sh_ambient", "shadows"); forced: user overrides, which always win."""
+    photometric residual of the fit so far (after 40 % of the inversion) with the base effects ("base")
+    and with one extra effect each ("multi_light", "sh_ambient", "shadows"); forced: user overrides,
+    which always win."""
     reasons: dict[str, str] = {}
     on: dict[str, bool] = {}
     frac = highlight_fraction(skin_rgb)
