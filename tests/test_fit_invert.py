@@ -79,7 +79,7 @@ def test_tuning_trains_only_the_middle_layers_and_lowers_its_loss(models_root):
     assert all(np.isfinite(list(r.values())).all() for r in res.history)
 
 
-def test_effect_selection_runs_at_the_coarse_switch_and_user_overrides_win(models_root):
+def test_effect_selection_runs_at_select_fraction_and_user_overrides_win(models_root):
     from fitme_cli.perception.dlib_resnet import load_dlib_resnet
     from fitme_cli.shape.model import load_shape_model
 

@@ -102,7 +102,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         if fixed:
             raise click.BadParameter(f"{', '.join('--' + k.replace('_', '-') for k in fixed)} cannot change on --resume "
                                      f"(the run has {', '.join(f'{k}={getattr(state.train, k)}' for k in fixed)})")
-        new = {k: v for k, v in cfg["train"].items() if k in ("kimg", "snapshot_kimg", "ema_kimg", "g_lr", "d_lr")}
+        # ADA comes from its flag only (a config file's "ada" keeps the run's own, as before)
+        new = {k: v for k, v in cfg["train"].items() if k in changeable and k != "ada"}
         if flags.get("ada") is not None:
             new["ada"] = flags["ada"]
         state.train = dataclasses.replace(state.train, **new)
