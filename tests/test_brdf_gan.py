@@ -195,6 +195,8 @@ def test_settings_are_checked():
         TrainSettings(batch=3)
     with pytest.raises(ValueError, match="ema_kimg must be > 0"):
         TrainSettings(ema_kimg=0.0)
+    with pytest.raises(ValueError, match=r"ada_target must be in \(0, 1\), got 1.0"):
+        TrainSettings(ada_target=1.0)
     with pytest.raises(ValueError, match="learning rates must be > 0"):
         TrainSettings(g_lr=0.0)
 
@@ -379,12 +381,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
-                                  "--threads", "1"])
+                                  "--ada-target", "0.8", "--threads", "1"])
     assert r.exit_code == 0, r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     # the EMA half-life and the learning rates may change on resume, and the optimiser uses the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
-    assert state.train.g_lr == 0.001 and state.train.d_lr == 0.0025
+    assert state.train.g_lr == 0.001 and state.train.d_lr == 0.0025 and state.train.ada_target == 0.8
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output

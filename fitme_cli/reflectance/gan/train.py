@@ -38,7 +38,7 @@ class TrainSettings:
     ema_rampup: float = 0.05
     style_mixing: float = 0.9
     ada: bool = False
-    ada_target: float = 0.6
+    ada_target: float = 0.6  # StyleGAN2-ADA's: p rises while E[sign(D(real))] > this
     ada_interval: int = 4
     ada_kimg: float = 100.0  # p can move 0 -> 1 in this many kimg
     snapshot_kimg: float = 1.0  # sample grid, metrics and checkpoint every this many kimg
@@ -54,6 +54,8 @@ class TrainSettings:
             raise ValueError(f"learning rates must be > 0, got g_lr={self.g_lr}, d_lr={self.d_lr}")
         if self.ema_kimg is not None and self.ema_kimg <= 0:
             raise ValueError(f"ema_kimg must be > 0 or None (batch * 10 / 32), got {self.ema_kimg}")
+        if not 0 < self.ada_target < 1:
+            raise ValueError(f"ada_target must be in (0, 1), got {self.ada_target}")
 
 
 @dataclass

@@ -1,0 +1,126 @@
+"""Is a BRDF-GAN candidate worth shipping? Its card next to the shipped one's, and what each does to
+fits of real photos: FaceNet similarity (the evaluation network) of the three sample photos to the
+render of their fit, per preset. Prints a Markdown table.
+
+A better card alone is not enough: the 107 kimg state (2026-11-25) had a Fréchet distance of 0.055
+against the shipped 92 kimg model's 0.063 and fitted the sample photos worse (docs/brdf_gan.md).
+
+    python -m fitme_cli.reflectance.gan.report RUN_DIR DATA_DIR -o CAND_DIR --truncation-psi 0.5
+    python benchmarks/gan_candidate.py CAND_DIR [--presets fast,default] [--threads 2]
+
+~20 s per photo and preset at fast, ~35 s at default, on 2 cores; each model runs in its own process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+_CHANNELS = ("albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z")
+
+
+def _signed(m: dict, key: str) -> str:
+    """Relative difference of the GAN's mean or std to the data's, signed, in %."""
+    d, g = m[f"data_{key}"], m[f"gan_{key}"]
+    return f"{100 * (g - d) / abs(d):+.0f}"
+
+
+def card_rows(card: dict) -> dict[str, str]:
+    m = card["metrics"]
+    pc = m["per_channel"]
+    fr = m["frechet_reflectance_features"]
+    psi1 = card.get("metrics_truncation_psi_1", {}).get("frechet_reflectance_features", {})
+    mod = m["modality_consistency"]
+    interp = m["interpolation_max_over_mean_step"]
+    return {
+        "kimg": f"{card['training']['kimg']:g}",
+        "albedo r/g/b mean %": " / ".join(_signed(pc[c], "mean") for c in _CHANNELS[:3]),
+        "albedo r/g/b std %": " / ".join(_signed(pc[c], "std") for c in _CHANNELS[:3]),
+        "specular mean / std %": f"{_signed(pc['specular'], 'mean')} / {_signed(pc['specular'], 'std')}",
+        "normals x/y/z std %": " / ".join(_signed(pc[c], "std") for c in _CHANNELS[4:]),
+        f"Fréchet (tone, detail) at ψ {card['sampling']['truncation_psi']:g}; half vs half {fr['half_vs_half']:.3f}":
+            f"{fr['gan_vs_heldout_half']:.3f} ({fr['by_part']['tone']['gan_vs_heldout_half']:.3f}, "
+            f"{fr['by_part']['detail']['gan_vs_heldout_half']:.3f})",
+        "Fréchet at ψ 1": f"{psi1['gan_vs_heldout_half']:.3f}" if psi1 else "–",
+        f"modality link (data {mod['data_matched']:.3f})": f"{mod['gan_matched']:+.3f}",
+        "interpolation median (max)": f"{interp['median']:.2f} ({interp['max']:.2f})",
+    }
+
+
+def _worker(presets: list[str], threads: int) -> None:
+    """In a process whose FITME_MODELS_DIR is the model under test: one JSON line per preset."""
+    import torch
+
+    torch.set_num_threads(threads)
+    from fitme_cli.bench.realphotos import collect_photos, run_real_photos
+    from fitme_cli.bench.run import FitSettings, load_models
+
+    models, photos = load_models(), collect_photos(None)
+    for preset in presets:
+        res = run_real_photos(models, photos, FitSettings.from_preset(preset))
+        print(json.dumps({"preset": preset, "sims": {r.photo: r.render_sim for r in res},
+                          "fit_s": [r.fit_s for r in res]}), flush=True)
+
+
+def _models_with(candidate: Path, shipped: Path, out: Path) -> Path:
+    """A models folder: every shipped file linked, brdf_gan.{safetensors,json} from the candidate."""
+    out.mkdir()
+    for f in shipped.iterdir():
+        if not f.name.startswith("brdf_gan."):
+            (out / f.name).symlink_to(f.resolve())
+    for name in ("brdf_gan.safetensors", "brdf_gan.json"):
+        (out / name).symlink_to((candidate / name).resolve())
+    return out
+
+
+def _fit_photos(models_dir: Path, presets: list[str], threads: int) -> dict[str, dict]:
+    env = dict(os.environ, FITME_MODELS_DIR=str(models_dir))
+    proc = subprocess.run([sys.executable, __file__, "--worker", ",".join(presets), "--threads", str(threads)],
+                          env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"fits with {models_dir} failed:\n{proc.stderr[-2000:]}")
+    rows = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+    return {r["preset"]: r for r in rows}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("candidate", type=Path, nargs="?", help="folder with the candidate's brdf_gan.{safetensors,json}")
+    ap.add_argument("--presets", default="fast,default")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    presets = [p for p in (args.worker or args.presets).split(",") if p]
+    if args.worker:
+        _worker(presets, args.threads)
+        return
+    from fitme_cli.perception.store import models_dir
+
+    shipped = models_dir()
+    cand = args.candidate
+    if cand is None or not (cand / "brdf_gan.safetensors").is_file() or not (cand / "brdf_gan.json").is_file():
+        ap.error(f"expected a folder with brdf_gan.safetensors and brdf_gan.json, got {cand}")
+    cards = {"shipped": json.loads((shipped / "brdf_gan.json").read_text()),
+             "candidate": json.loads((cand / "brdf_gan.json").read_text())}
+    with tempfile.TemporaryDirectory() as tmp:
+        fits = {"shipped": _fit_photos(shipped, presets, args.threads),
+                "candidate": _fit_photos(_models_with(cand, shipped, Path(tmp) / "models"), presets, args.threads)}
+    rows = {k: card_rows(c) for k, c in cards.items()}
+    for p in presets:
+        for k in fits:
+            sims = fits[k][p]["sims"]
+            vals = list(sims.values())
+            rows[k][f"{p} preset: {' / '.join(sims)}, mean"] = (" / ".join(f"{v:.2f}" for v in vals)
+                                                               + f", **{sum(vals) / len(vals):.3f}**")
+    print("| | shipped | candidate |\n|---|---|---|")
+    for key in rows["shipped"]:
+        print(f"| {key} | {rows['shipped'][key]} | {rows['candidate'][key]} |")
+
+
+if __name__ == "__main__":
+    main()

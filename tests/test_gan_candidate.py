@@ -1,0 +1,69 @@
+"""benchmarks/gan_candidate.py: the card table and the candidate's models folder (the fits themselves take
+minutes and are what the script is run for, not tested here)."""
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "benchmarks" / "gan_candidate.py"
+
+
+@pytest.fixture(scope="module")
+def gc():
+    spec = importlib.util.spec_from_file_location("gan_candidate", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _card(albedo_r_gan_mean=0.22, frechet=0.055):
+    ch = {k: {"data_mean": 0.2, "gan_mean": 0.2, "data_std": 0.1, "gan_std": 0.1}
+          for k in ("albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z")}
+    ch["albedo_r"]["gan_mean"] = albedo_r_gan_mean
+    ch["normal_z"]["gan_std"] = 0.08
+    fr = {"gan_vs_heldout_half": frechet, "half_vs_half": 0.002,
+          "by_part": {"tone": {"gan_vs_heldout_half": 0.03}, "detail": {"gan_vs_heldout_half": 0.02}}}
+    return {"training": {"kimg": 107.0}, "sampling": {"truncation_psi": 0.5},
+            "metrics": {"per_channel": ch, "frechet_reflectance_features": fr,
+                        "modality_consistency": {"gan_matched": -0.06, "data_matched": 0.376},
+                        "interpolation_max_over_mean_step": {"median": 1.169, "max": 1.429}}}
+
+
+def test_card_rows_sign_the_differences_to_the_data(gc):
+    rows = gc.card_rows(_card())
+    assert rows["kimg"] == "107"
+    assert rows["albedo r/g/b mean %"] == "+10 / +0 / +0"
+    assert rows["normals x/y/z std %"] == "+0 / +0 / -20"
+    assert rows["Fréchet (tone, detail) at ψ 0.5; half vs half 0.002"] == "0.055 (0.030, 0.020)"
+    assert rows["Fréchet at ψ 1"] == "–"  # a card sampled at ψ = 1 has no second set
+    assert rows["modality link (data 0.376)"] == "-0.060"
+    assert rows["interpolation median (max)"] == "1.17 (1.43)"
+
+
+def test_the_shipped_card_has_every_row(gc):
+    rows = gc.card_rows(json.loads((REPO / "models" / "brdf_gan.json").read_text()))
+    assert len(rows) == 9 and all(v and v != "nan" for v in rows.values())
+
+
+def test_models_folder_takes_the_gan_from_the_candidate_and_the_rest_from_the_shipped(gc, tmp_path):
+    shipped, cand = tmp_path / "shipped", tmp_path / "cand"
+    shipped.mkdir(), cand.mkdir()
+    for name in ("facenet.onnx", "brdf_gan.safetensors", "brdf_gan.json", "brdf_gan.wprior.safetensors"):
+        (shipped / name).write_text("shipped " + name)
+    for name in ("brdf_gan.safetensors", "brdf_gan.json"):
+        (cand / name).write_text("candidate " + name)
+    out = gc._models_with(cand, shipped, tmp_path / "models")
+    assert sorted(p.name for p in out.iterdir()) == ["brdf_gan.json", "brdf_gan.safetensors", "facenet.onnx"]
+    assert (out / "facenet.onnx").read_text() == "shipped facenet.onnx"
+    assert (out / "brdf_gan.safetensors").read_text() == "candidate brdf_gan.safetensors"
+    # the shipped W prior is derived from the shipped generator: the candidate derives its own
+
+
+def test_a_folder_without_a_candidate_is_refused(tmp_path):
+    r = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 2 and "expected a folder with brdf_gan.safetensors and brdf_gan.json" in r.stderr
