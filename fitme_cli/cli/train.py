@@ -98,8 +98,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         state = load_checkpoint(ckpt)
         # the run length, snapshot cadence, augmentation (on or off, its target), learning rates and EMA
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
-        # are the usual moves);
-        # the rest is the run's own, and saying otherwise is an error
+        # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ema_kimg", "g_lr", "d_lr")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
