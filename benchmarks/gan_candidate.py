@@ -8,7 +8,8 @@ against the shipped 92 kimg model's 0.063 and fitted the sample photos worse (do
     python -m fitme_cli.reflectance.gan.report RUN_DIR DATA_DIR -o CAND_DIR --truncation-psi 0.5
     python benchmarks/gan_candidate.py CAND_DIR [--presets fast,default] [--threads 2]
 
-~20 s per photo and preset at fast, ~35 s at default, on 2 cores; each model runs in its own process.
+Each model runs in its own process; on 2 cores the whole comparison takes ~50 s at the fast preset
+and ~4 min with the default preset added (fits of 6 s and 35 s).
 """
 
 from __future__ import annotations
