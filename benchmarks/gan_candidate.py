@@ -22,9 +22,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-_CHANNELS = ("albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z")
-
-
 def _signed(m: dict, key: str) -> str:
     """Relative difference of the GAN's mean or std to the data's, signed, in %."""
     d, g = m[f"data_{key}"], m[f"gan_{key}"]
@@ -38,12 +35,14 @@ def card_rows(card: dict) -> dict[str, str]:
     psi1 = card.get("metrics_truncation_psi_1", {}).get("frechet_reflectance_features", {})
     mod = m["modality_consistency"]
     interp = m["interpolation_max_over_mean_step"]
+    albedo = [c for c in pc if c.startswith("albedo_")]  # the card's channel names, in its order
+    normals = [c for c in pc if c.startswith("normal_")]
     return {
         "kimg": f"{card['training']['kimg']:g}",
-        "albedo r/g/b mean %": " / ".join(_signed(pc[c], "mean") for c in _CHANNELS[:3]),
-        "albedo r/g/b std %": " / ".join(_signed(pc[c], "std") for c in _CHANNELS[:3]),
+        "albedo r/g/b mean %": " / ".join(_signed(pc[c], "mean") for c in albedo),
+        "albedo r/g/b std %": " / ".join(_signed(pc[c], "std") for c in albedo),
         "specular mean / std %": f"{_signed(pc['specular'], 'mean')} / {_signed(pc['specular'], 'std')}",
-        "normals x/y/z std %": " / ".join(_signed(pc[c], "std") for c in _CHANNELS[4:]),
+        "normals x/y/z std %": " / ".join(_signed(pc[c], "std") for c in normals),
         f"Fréchet (tone, detail) at ψ {card['sampling']['truncation_psi']:g}; half vs half {fr['half_vs_half']:.3f}":
             f"{fr['gan_vs_heldout_half']:.3f} ({fr['by_part']['tone']['gan_vs_heldout_half']:.3f}, "
             f"{fr['by_part']['detail']['gan_vs_heldout_half']:.3f})",
