@@ -37,12 +37,14 @@ def card_rows(card: dict) -> dict[str, str]:
     interp = m["interpolation_max_over_mean_step"]
     albedo = [c for c in pc if c.startswith("albedo_")]  # the card's channel names, in its order
     normals = [c for c in pc if c.startswith("normal_")]
+    scale = m.get("std_ratio_by_scale")  # cards written before 2026-11-25 lack it
     return {
         "kimg": f"{card['training']['kimg']:g}",
         "albedo r/g/b mean %": " / ".join(_signed(pc[c], "mean") for c in albedo),
         "albedo r/g/b std %": " / ".join(_signed(pc[c], "std") for c in albedo),
         "specular mean / std %": f"{_signed(pc['specular'], 'mean')} / {_signed(pc['specular'], 'std')}",
         "normals x/y/z std %": " / ".join(_signed(pc[c], "std") for c in normals),
+        "albedo r/g/b fine-grain std, × data": " / ".join(f"{scale[c]['fine']:.2f}" for c in albedo) if scale else "–",
         f"Fréchet (tone, detail) at ψ {card['sampling']['truncation_psi']:g}; half vs half {fr['half_vs_half']:.3f}":
             f"{fr['gan_vs_heldout_half']:.3f} ({fr['by_part']['tone']['gan_vs_heldout_half']:.3f}, "
             f"{fr['by_part']['detail']['gan_vs_heldout_half']:.3f})",

@@ -223,6 +223,14 @@ def test_ada_augment():
     assert x.grad is not None
     # the normals keep their magnitude (flips and shifts only move and mirror them)
     torch.testing.assert_close(y[:, 4:].square().sum(), x[:, 4:].square().sum())
+    # with the colour transforms off, every texel keeps its value (up to the N_x sign), only moved
+    g = torch.Generator().manual_seed(0)
+    geo = augment(x.detach(), 1.0, g, color=False)
+    srt = lambda t: t.flatten(2).abs().sort(2).values  # noqa: E731
+    torch.testing.assert_close(srt(geo), srt(x.detach()), rtol=0, atol=0)
+    assert not torch.equal(geo, x.detach())  # p = 1: the batch was flipped and shifted
+    colour = augment(x.detach(), 1.0, torch.Generator().manual_seed(0))
+    assert not torch.allclose(srt(colour[:, :4]), srt(x.detach()[:, :4]))  # on by default, it changes values
 
 
 # --- training -------------------------------------------------------------------------------------------
@@ -381,12 +389,13 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
-                                  "--ada-target", "0.8", "--threads", "1"])
+                                  "--ada-target", "0.8", "--no-ada-color", "--threads", "1"])
     assert r.exit_code == 0, r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     # the EMA half-life and the learning rates may change on resume, and the optimiser uses the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
     assert state.train.g_lr == 0.001 and state.train.d_lr == 0.0025 and state.train.ada_target == 0.8
+    assert state.train.ada_color is False
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output
@@ -435,8 +444,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     region_uv = load_file(str(models_root / "shape_model.safetensors"))["region_uv"]
     regions = torch.from_numpy(cv2.resize(region_uv, (64, 64), interpolation=cv2.INTER_NEAREST))
     m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
-    assert set(m) == {"per_channel", "frechet_reflectance_features", "region_albedo_q10_q50_q90", "modality_consistency",
-                      "interpolation_max_over_mean_step"}
+    assert set(m) == {"per_channel", "std_ratio_by_scale", "frechet_reflectance_features", "region_albedo_q10_q50_q90",
+                      "modality_consistency", "interpolation_max_over_mean_step"}
+    assert all(set(r) == {"between", "coarse", "fine"} and all(np.isfinite(v) and v >= 0 for v in r.values())
+               for r in m["std_ratio_by_scale"].values()) and len(m["std_ratio_by_scale"]) == 7
     assert set(m["frechet_reflectance_features"]["by_part"]) == {"tone", "detail"}
     tones = m["region_albedo_q10_q50_q90"]
     assert {"scalp", "skin", "lips"} <= set(tones)
@@ -461,6 +472,49 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert frechet_distance(a, a + 2.0) == pytest.approx(12.0, rel=1e-6)  # |mean shift|^2 = 3 * 4
     walk = torch.linspace(0, 1, 9).view(9, 1, 1, 1).expand(9, 3, 4, 4)
     assert interpolation_smoothness(walk) == pytest.approx(1.0)
+
+
+def test_closeup_shows_the_data_then_each_truncation_at_full_resolution():
+    from fitme_cli.ops.srgb import linear_to_srgb
+    from fitme_cli.reflectance.gan.report import closeup
+
+    data = _tiny_data(n=4, r=16)
+    G = Generator(TINY)
+    img = closeup(G, data, truncation_psi=0.5, n=2)
+    assert img.shape == (3 * 8, 2 * 16, 3) and img.dtype == np.uint8  # data, psi 0.5, psi 1; n x (albedo | specular)
+    assert closeup(G, data, truncation_psi=1.0, n=2).shape == (2 * 8, 2 * 16, 3)  # psi 1 is not shown twice
+    albedo = decode_maps(GanImages.split(data[:1]), TINY).albedo[0, :, 4:12, 4:12]
+    expected = (linear_to_srgb(albedo).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+    np.testing.assert_allclose(img[:8, :8].astype(int), expected.astype(int), atol=1)  # the first data sample's face
+
+
+def test_std_parts_known_values_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import std_parts
+
+    r = 32
+    mask = torch.ones(r, r, dtype=torch.bool)
+    x = torch.zeros(2, 7, r, r)
+    x[0, 0] += 0.1  # channel 0: two flat samples, means 0.1 and 0.3: all spread is between samples
+    x[1, 0] += 0.3
+    checker = (torch.arange(r)[:, None] + torch.arange(r)[None]) % 2 * 2 - 1.0  # +-1 every texel
+    x[:, 1] = 0.05 * checker  # channel 1: grain only
+    x[:, 2, :, : r // 2] = 0.2  # channel 2: left half bright, right half dark: coarse, fine only at the edge
+    p = std_parts(x, mask)
+    assert p.between[0] == pytest.approx(0.2 / 2**0.5)
+    assert p.coarse[0] == pytest.approx(0, abs=1e-6) and p.fine[0] == pytest.approx(0, abs=1e-6)
+    assert p.between[1] == pytest.approx(0, abs=1e-7) and p.fine[1] == pytest.approx(0.05, rel=0.02)
+    assert p.coarse[1] < 0.03 * p.fine[1]  # a 9x9 box of a checker keeps 1/81 of it
+    assert p.coarse[2] > 0.08 and p.fine[2] < 0.5 * p.coarse[2] and p.between[2] == pytest.approx(0, abs=1e-7)
+    # the mask chooses the texels: only the dark half of channel 2 counts -> no spread at all
+    half = torch.zeros(r, r, dtype=torch.bool)
+    half[:, r // 2 + 5 :] = True
+    assert std_parts(x, half).coarse[2] == pytest.approx(0, abs=1e-7)
+    with pytest.raises(ValueError, match=r"expected \(N >= 2, 7, R, R\) maps, got shape \(1, 7, 32, 32\)"):
+        std_parts(x[:1], mask)
+    with pytest.raises(ValueError, match="expected a bool mask of shape"):
+        std_parts(x, mask.float())
+    with pytest.raises(ValueError, match="window must be odd"):
+        std_parts(x, mask, window=8)
 
 
 def test_feature_parts_and_region_albedo_known_values():

@@ -43,11 +43,16 @@ def test_card_rows_sign_the_differences_to_the_data(gc):
     assert rows["Fréchet at ψ 1"] == "–"  # a card sampled at ψ = 1 has no second set
     assert rows["modality link (data 0.376)"] == "-0.060"
     assert rows["interpolation median (max)"] == "1.17 (1.43)"
+    assert rows["albedo r/g/b fine-grain std, × data"] == "–"  # an older card without the std by scale
+    card = _card()
+    card["metrics"]["std_ratio_by_scale"] = {c: {"between": 1.0, "coarse": 1.0, "fine": f}
+                                             for c, f in (("albedo_r", 1.384), ("albedo_g", 1.5), ("albedo_b", 0.9))}
+    assert gc.card_rows(card)["albedo r/g/b fine-grain std, × data"] == "1.38 / 1.50 / 0.90"
 
 
 def test_the_shipped_card_has_every_row(gc):
     rows = gc.card_rows(json.loads((REPO / "models" / "brdf_gan.json").read_text()))
-    assert len(rows) == 9 and all(v and v != "nan" for v in rows.values())
+    assert len(rows) == 10 and all(v and v != "nan" and v != "–" for v in rows.values())
 
 
 def test_models_folder_takes_the_gan_from_the_candidate_and_the_rest_from_the_shipped(gc, tmp_path):

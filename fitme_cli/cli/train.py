@@ -12,7 +12,7 @@ __all__ = ["command"]
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
-                "ada_target")
+                "ada_target", "ada_color")
 
 
 @click.command("train")
@@ -31,6 +31,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--ada/--no-ada", default=None, help="ADA-style augmentation of D's inputs. [off]")
 @click.option("--ada-target", type=click.FloatRange(0, 1, min_open=True, max_open=True),
               help="ADA raises p while E[sign(D(real))] is above this, lowers it below. [0.6]")
+@click.option("--ada-color/--no-ada-color", default=None,
+              help="ADA's brightness / contrast / saturation of the albedos besides flips and shifts. [on]")
 @click.option("--snapshot-kimg", type=float, help="Grid, metrics and checkpoint every this many kimg. [1]")
 @click.option("--g-lr", type=float, help="[0.0025]")
 @click.option("--d-lr", type=float, help="[0.0025]")
@@ -96,10 +98,10 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         if not ckpt.is_file():
             raise InputNotFound("nothing to resume: no checkpoint.safetensors in the run directory", run_dir)
         state = load_checkpoint(ckpt)
-        # the run length, snapshot cadence, augmentation (on or off, its target), learning rates and EMA
+        # the run length, snapshot cadence, augmentation (on or off, its target, colour), learning rates and EMA
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
-        changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ema_kimg", "g_lr", "d_lr")
+        changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:

@@ -1,7 +1,8 @@
 """ADA-style discriminator augmentation (Karras et al. 2020), reduced to the transforms that make
 sense for UV reflectance maps: x-flip (mirrors the symmetric layout; normals' x flips sign), integer
-translation, and brightness / contrast / saturation of the albedos. Each is applied per sample with
-probability p, identically to real and generated maps, and is differentiable.
+translation, and brightness / contrast / saturation of the albedos (``color=False`` leaves them out).
+Each is applied per sample with probability p, identically to real and generated maps, and is
+differentiable.
 """
 
 from __future__ import annotations
@@ -11,8 +12,9 @@ import torch
 __all__ = ["augment"]
 
 
-def augment(x: torch.Tensor, p: float, generator: torch.Generator | None = None) -> torch.Tensor:
-    """x: (B, 7, R, R) network space (A_D 0:3, A_S 3, N_S 4:7). Returns the augmented batch."""
+def augment(x: torch.Tensor, p: float, generator: torch.Generator | None = None, color: bool = True) -> torch.Tensor:
+    """x: (B, 7, R, R) network space (A_D 0:3, A_S 3, N_S 4:7). Returns the augmented batch; with
+    ``color=False`` only the geometric transforms (flip, translation)."""
     if p <= 0:
         return x
     b, _, r, _ = x.shape
@@ -30,6 +32,8 @@ def augment(x: torch.Tensor, p: float, generator: torch.Generator | None = None)
 
     shifts = ((draw(b, 2) * 2 - 1) * r / 16).round().long() * (draw(b, 1) < p).long()
     x = torch.stack([torch.roll(x[i], (int(shifts[i, 0]), int(shifts[i, 1])), dims=(1, 2)) for i in range(b)])
+    if not color:
+        return x
 
     alb = x[:, :4]
     bright = (torch.randn(b, generator=generator).to(dev) * 0.1).view(b, 1, 1, 1) * on(p)

@@ -9,6 +9,9 @@
 - ``modality_consistency``: does one sample's albedo darken where its normals show cavities? The
   correlation between the albedo's band-pass luminance and the normals' divergence (concave < 0),
   for matching pairs against mismatched pairs.
+- ``std_parts``: a channel's spread split by scale: between samples (their means), within a sample
+  above a 9-texel window (regions, patches), and below it (grain, pores, strands). Says which part of
+  a std difference to the data is tone and which is texture.
 - ``interpolation_smoothness``: the largest step of a latent walk relative to its mean step.
 - ``feature_parts`` and ``region_albedo``: views of ``reflectance_features`` that say where a Frechet
   distance comes from (tone per region vs detail) and how each region's albedo is distributed.
@@ -22,7 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["ChannelStats", "channel_stats", "region_labels", "reflectance_features", "feature_parts", "region_albedo",
+__all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_labels", "reflectance_features", "feature_parts", "region_albedo",
            "frechet_distance", "modality_consistency", "interpolation_smoothness"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
@@ -41,6 +44,32 @@ def channel_stats(phys: torch.Tensor, mask: torch.Tensor | None = None) -> Chann
         x = x[:, :, mask.flatten()]
     x = x.reshape(7, -1)
     return ChannelStats(x.mean(1).tolist(), x.std(1).tolist())
+
+
+@dataclass(frozen=True)
+class StdParts:
+    """Per physical channel (7), in the channel's units: between**2 + coarse**2 + fine**2 is about the
+    channel's variance (the parts are not exactly orthogonal)."""
+
+    between: list[float]  # std of the samples' means over the mask
+    coarse: list[float]  # within a sample: the window-averaged map around the sample's mean
+    fine: list[float]  # within a sample: the map around its window average
+
+
+def std_parts(phys: torch.Tensor, mask: torch.Tensor, window: int = 9) -> StdParts:
+    """phys: (N, 7, R, R) physical maps, N >= 2; mask: (R, R) bool texels to count; window: odd box size."""
+    if phys.ndim != 4 or phys.shape[1] != 7 or len(phys) < 2:
+        raise ValueError(f"expected (N >= 2, 7, R, R) maps, got shape {tuple(phys.shape)}")
+    if mask.shape != phys.shape[-2:] or mask.dtype != torch.bool:
+        raise ValueError(f"expected a bool mask of shape {tuple(phys.shape[-2:])}, got {mask.dtype} {tuple(mask.shape)}")
+    if window < 3 or window % 2 == 0:
+        raise ValueError(f"window must be odd and >= 3, got {window}")
+    x = phys.float()
+    means = x[:, :, mask].mean(2)  # (N, 7)
+    local = F.avg_pool2d(x, window, stride=1, padding=window // 2, count_include_pad=False)
+    coarse = (local - means[:, :, None, None])[:, :, mask].square().mean((0, 2)).sqrt()
+    fine = (x - local)[:, :, mask].square().mean((0, 2)).sqrt()
+    return StdParts(means.std(0).tolist(), coarse.tolist(), fine.tolist())
 
 
 def _bandpass(x: torch.Tensor, levels: int = 3) -> list[torch.Tensor]:

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from .data import load_dataset
-from .metrics import (ChannelStats, feature_parts, frechet_distance, interpolation_smoothness, modality_consistency,
-                      reflectance_features, region_albedo, region_labels)
+from .metrics import (ChannelStats, StdParts, feature_parts, frechet_distance, interpolation_smoothness,
+                      modality_consistency, reflectance_features, region_albedo, region_labels, std_parts)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -62,16 +62,17 @@ def _encoded(stats_mean, stats_std):
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
-             mapped: torch.Tensor, skin: torch.Tensor) -> tuple[ChannelStats, np.ndarray, tuple[float, float]]:
-    """One side of the comparison (generated when src is None): channel stats, reflectance features and
-    modality consistency."""
+             mapped: torch.Tensor, skin: torch.Tensor) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts]:
+    """One side of the comparison (generated when src is None): channel stats, reflectance features,
+    modality consistency and the std by scale (the last two on the first 200 samples)."""
     st, fs, cm = _Stats(mapped), [], []
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
         fs.append(reflectance_features(x, regions))
         if sum(len(c) for c in cm) < 200:
             cm.append(x)
-    return st.result(), np.concatenate(fs), modality_consistency(torch.cat(cm)[:200], skin)
+    first = torch.cat(cm)[:200]
+    return st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped)
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -95,7 +96,7 @@ def evaluate_psis(G: Generator, data: torch.Tensor, regions: torch.Tensor, trunc
 
 
 def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncation_psi: float) -> dict:
-    (gan_stats, gan_feats, gan_cons), (data_stats, data_feats, data_cons) = gan, real
+    (gan_stats, gan_feats, gan_cons, gan_parts), (data_stats, data_feats, data_cons, data_parts) = gan, real
     half = len(data_feats) // 2
     fm, fsd = _encoded(gan_stats.mean, gan_stats.std)
     rm, rsd = _encoded(data_stats.mean, data_stats.std)
@@ -103,6 +104,9 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
                           "mean_rel_diff": round(abs(fm[i] - rm[i]) / abs(rm[i]), 4),
                           "data_std": round(rsd[i], 4), "gan_std": round(fsd[i], 4),
                           "std_rel_diff": round(abs(fsd[i] - rsd[i]) / rsd[i], 4)} for i, name in enumerate(_CHANNELS)}
+    # which scale a std difference lives at: between samples, regions and patches, or grain (metrics.std_parts)
+    by_scale = {name: {part: round(getattr(gan_parts, part)[i] / max(getattr(data_parts, part)[i], 1e-12), 3)
+                       for part in ("between", "coarse", "fine")} for i, name in enumerate(_CHANNELS)}
     fa, fb = data_feats[:half], data_feats[half:]
     fg = gan_feats[: len(fb)]
     fd_gan = frechet_distance(fg, fb)
@@ -126,6 +130,7 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
             ratios.append(interpolation_smoothness(walk))
     return {
         "per_channel": per_channel,
+        "std_ratio_by_scale": by_scale,
         "frechet_reflectance_features": {"gan_vs_heldout_half": round(fd_gan, 4), "half_vs_half": round(fd_split, 4),
                                          "samples": [len(fg), len(fb)],
                                          "by_part": by_part},
@@ -145,7 +150,8 @@ def _region_name(label: int) -> str:
 def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: float = 1.0) -> list[Path]:
     """brdf_gan_samples.png (16 GAN triplets), brdf_gan_data.png (16 training triplets),
     brdf_gan_interpolation.png (4 latent walks, 8 steps, albedo and normals); at half resolution (the
-    docs stay small; full-resolution grids are in the training run's samples/)."""
+    docs stay small; full-resolution grids are in the training run's samples/). And
+    brdf_gan_closeup.png at full resolution, where the grain the half-size grids hide shows."""
     from ...io.atomic import atomic_write_image
     from .train import sample_grid
 
@@ -185,7 +191,31 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: flo
     img = torch.cat(rows, 1).permute(1, 2, 0).numpy()
     atomic_write_image(out_dir / "brdf_gan_interpolation.png", _half((img * 255 + 0.5).astype(np.uint8)))
     paths.append(out_dir / "brdf_gan_interpolation.png")
+    atomic_write_image(out_dir / "brdf_gan_closeup.png", closeup(G, data, truncation_psi))
+    paths.append(out_dir / "brdf_gan_closeup.png")
     return paths
+
+
+def closeup(G: Generator, data: torch.Tensor, truncation_psi: float = 1.0, n: int = 4) -> np.ndarray:
+    """(rows * R/2, n * R, 3) uint8 at full resolution: the face's centre (the middle R/2 square), albedo
+    (sRGB) | specular (x3, sRGB), for n training samples, n generated at ``truncation_psi`` and, below
+    1, n more at psi = 1."""
+    from ...ops.srgb import linear_to_srgb
+
+    r = G.settings.resolution
+    face = slice(r // 4, 3 * r // 4)
+    z = torch.randn(n, G.settings.z_dim, generator=torch.Generator().manual_seed(11))
+    with torch.no_grad():
+        sources = [GanImages.split(data[:n].float())]
+        sources += [G(z, truncation_psi=psi, noise_mode="const") for psi in dict.fromkeys((truncation_psi, 1.0))]
+    rows = []
+    for imgs in sources:
+        m = decode_maps(imgs, G.settings)
+        alb = linear_to_srgb(m.albedo[:, :, face, face])
+        spec = linear_to_srgb((3 * m.specular[:, :, face, face]).clamp(0, 1)).expand(-1, 3, -1, -1)
+        rows.append(torch.cat(list(torch.cat([alb, spec], 3)), 2))  # (3, R/2, n * R)
+    img = torch.cat(rows, 1).permute(1, 2, 0).clamp(0, 1).numpy()
+    return (img * 255 + 0.5).astype(np.uint8)
 
 
 def state_data_count(data_dir: Path) -> int:

@@ -41,6 +41,7 @@ class TrainSettings:
     ada_target: float = 0.6  # StyleGAN2-ADA's: p rises while E[sign(D(real))] > this
     ada_interval: int = 4
     ada_kimg: float = 100.0  # p can move 0 -> 1 in this many kimg
+    ada_color: bool = True  # brightness / contrast / saturation besides flips and shifts
     snapshot_kimg: float = 1.0  # sample grid, metrics and checkpoint every this many kimg
     seed: int = 0
     channels_last: bool = True  # NHWC convolutions: measured 23 % faster per step on this CPU
@@ -128,7 +129,8 @@ def _ws(state: TrainState, z: torch.Tensor) -> torch.Tensor:
 
 
 def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
-    return state.D(augment(img, state.ada_p) if state.train.ada else img)
+    t = state.train
+    return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
 
 
 def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
