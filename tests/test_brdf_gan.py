@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -202,8 +203,6 @@ def test_settings_are_checked():
 
 
 def test_set_learning_rates_after_a_resume_change():
-    import dataclasses
-
     from fitme_cli.reflectance.gan.train import set_learning_rates
 
     state = new_state(TINY, TrainSettings(batch=4, kimg=1))
@@ -401,6 +400,16 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 2 and "--ema-kimg" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--batch", "8"])
     assert r.exit_code == 2 and "--batch cannot change on --resume" in r.output
+    # the channels may grow on resume (gan/widen.py); nothing else of the architecture may change
+    base = [a for a in args[:-6] if a not in ("--channel-base", "64")]
+    r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--kimg", "0.02", "--resume", "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "widened: 8x8 8 -> 16, 16x16 4 -> 8 channels" in r.output
+    state = load_checkpoint(run / "checkpoint.safetensors")
+    assert state.gan.channel_base == 128 and state.nimg == 20
+    assert json.loads((run / "config.json").read_text())["gan"]["channel_base"] == 128
+    r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--resolution", "32", "--kimg", "0.024", "--resume"])
+    assert r.exit_code == 2 and "only --channel-base and --channel-max may grow" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "other"), "--resume"])
     assert r.exit_code == 10 and "nothing to resume" in r.output
     r = CliRunner().invoke(main, ["train", str(tmp_path / "missing"), "-o", str(tmp_path / "x"), "--resolution", "16"])
@@ -556,3 +565,46 @@ def test_w_prior_is_about_one_for_samples_and_large_off_the_manifold():
     ws = w[:3, None].repeat(1, 4, 1).requires_grad_()
     prior.distance(ws).sum().backward()
     assert torch.isfinite(ws.grad).all() and ws.grad.abs().sum() > 0
+
+
+# --- widening a trained run ------------------------------------------------------------------------------
+
+
+def test_widening_keeps_what_g_and_d_compute_and_trains_the_new_channels():
+    from fitme_cli.reflectance.gan.widen import widen_state
+
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, channels_last=False))
+    with torch.no_grad():  # make every layer matter: trained-looking biases, noise and colours
+        for p in list(state.G.parameters()) + list(state.D.parameters()):
+            p.add_(0.1 * torch.randn_like(p))
+        state.G_ema.load_state_dict(state.G.state_dict())
+    state.step, state.nimg, state.ada_p = 7, 28, 0.3
+    wide_settings = dataclasses.replace(TINY, channel_base=128)  # 16x16: 4 -> 8 channels, 8x8: 8 -> 16
+    assert wide_settings.channels(16) > TINY.channels(16)
+    wide = widen_state(state, wide_settings)
+    assert (wide.step, wide.nimg, wide.ada_p, wide.gan) == (7, 28, 0.3, wide_settings)
+    z = torch.randn(3, TINY.z_dim)
+    with torch.no_grad():
+        for old, new in ((state.G, wide.G), (state.G_ema, wide.G_ema)):
+            torch.testing.assert_close(new(z, noise_mode="const").cat(), old(z, noise_mode="const").cat(), rtol=1e-5, atol=1e-5)
+        x = torch.randn(4, 7, 16, 16)
+        torch.testing.assert_close(wide.D(x), state.D(x), rtol=1e-5, atol=1e-5)
+    # the zeroed weights (old outputs reading new channels) get gradients, so the new capacity is used
+    wide.G(z, noise_mode="const").cat().square().sum().backward()
+    w = wide.G.synthesis.branches["albedo"]["b16"].conv1.weight
+    c_old = TINY.channels(16)
+    assert torch.count_nonzero(w[:c_old, c_old:]) == 0 and w.grad[:c_old, c_old:].abs().sum() > 0
+    # a fresh optimiser over the wider parameters
+    assert sum(p.numel() for g in wide.opt_G.param_groups for p in g["params"]) == sum(p.numel() for p in wide.G.parameters())
+
+
+def test_widening_refuses_what_it_cannot_do():
+    from fitme_cli.reflectance.gan.widen import widen_module, widen_state
+
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1))
+    with pytest.raises(ValueError, match="only the channels can grow on a trained run; resolution would change"):
+        widen_state(state, dataclasses.replace(TINY, resolution=32))
+    with pytest.raises(ValueError, match=r"channels can only grow: 16 -> 8 at 4x4"):
+        widen_state(state, dataclasses.replace(TINY, channel_max=8))
+    with pytest.raises(ValueError, match="cannot widen"):
+        widen_module(Generator(dataclasses.replace(TINY, channel_base=128)), Generator(TINY))

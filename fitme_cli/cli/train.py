@@ -22,8 +22,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--resume", is_flag=True, help="Continue from the run directory's checkpoint.")
 @click.option("--resolution", type=int, help="Output resolution (power of two). [256]")
 @click.option("--branch-resolution", type=int, help="Blocks from this resolution up are per modality. [256]")
-@click.option("--channel-base", type=int, help="Channels at resolution r: min(base / r, max). [2048]")
-@click.option("--channel-max", type=int, help="[128]")
+@click.option("--channel-base", type=int, help="Channels at resolution r: min(base / r, max); may grow on --resume. [2048]")
+@click.option("--channel-max", type=int, help="May grow on --resume. [128]")
 @click.option("--mapping-layers", type=int, help="[2]")
 @click.option("--batch", type=int, help="[4]")
 @click.option("--kimg", type=float, help="Train until this many thousand real images. [40]")
@@ -113,6 +113,22 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             new["ada"] = flags["ada"]
         state.train = dataclasses.replace(state.train, **new)
         set_learning_rates(state)
+        # the architecture is the run's own, except that its channels may grow (gan/widen.py: the wider
+        # networks start out computing what the trained ones did)
+        grown = {k: v for k, v in cfg["gan"].items() if getattr(state.gan, k) != v}
+        if grown:
+            from ..reflectance.gan.widen import widen_state
+
+            before = state.gan
+            try:
+                state = widen_state(state, dataclasses.replace(state.gan, **grown))
+            except ValueError as e:
+                raise click.BadParameter(f"{e} (on --resume only --channel-base and --channel-max may grow)") from None
+            click.echo("widened: " + ", ".join(f"{r}x{r} {before.channels(r)} -> {state.gan.channels(r)}" for r in before.resolutions
+                                                if before.channels(r) != state.gan.channels(r)) + " channels", err=True)
+            run_cfg = run_dir / "config.json"
+            kept = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
+            run_cfg.write_text(json.dumps({**kept, "gan": dataclasses.asdict(state.gan)}, indent=2))
         gan_settings = state.gan
         click.echo(f"resuming at {state.nimg / 1000:.2f} kimg", err=True)
     else:

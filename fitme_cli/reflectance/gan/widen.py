@@ -1,0 +1,77 @@
+"""Grow a trained BRDF-GAN's channels without changing what it computes (Net2Net-style widening).
+
+CPU training is slow, so more capacity is added to a run rather than started over: every layer keeps
+its trained weights, the new output channels start from the usual random init, and the weights that
+read the new channels into old ones start at zero, so the widened G draws the same maps and the
+widened D gives the same logits until training moves them. Equalised learning rate scales a weight
+by 1/sqrt(fan in) at run time; where that gain changes with the width, the stored weights are rescaled
+so the effective weight stays. The modulated convs need no rescale: demodulation divides by the norm
+over the input channels, which zero columns do not change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from torch import nn
+
+from .networks import GanSettings
+
+__all__ = ["widen_module", "widen_state"]
+
+
+def _gain(module: nn.Module) -> float:
+    """The run-time factor on a module's ``weight`` (1 where demodulation makes the scale irrelevant)."""
+    g = getattr(module, "gain", None)
+    if isinstance(g, float):
+        return g
+    g = getattr(module, "w_gain", None)
+    return g if isinstance(g, float) else 1.0
+
+
+def widen_module(old: nn.Module, new: nn.Module) -> None:
+    """Copy ``old``'s parameters and buffers into ``new`` (same architecture, each tensor at least as
+    large in every dimension). ``new`` keeps its own init for the added output channels; weights of old
+    outputs reading added inputs are zeroed. Raises ValueError on names or shapes that do not fit."""
+    old_mods, new_mods = dict(old.named_modules()), dict(new.named_modules())
+    old_state = old.state_dict()
+    new_state = new.state_dict()
+    if set(old_state) != set(new_state):
+        raise ValueError(f"not the same architecture: tensors only in the old one {sorted(set(old_state) - set(new_state))[:3]}, "
+                         f"only in the new one {sorted(set(new_state) - set(old_state))[:3]}")
+    with torch.no_grad():
+        for name, t_new in new_state.items():
+            t_old = old_state[name]
+            if t_old.shape == t_new.shape:
+                t_new.copy_(t_old)
+                continue
+            if t_old.ndim != t_new.ndim or any(o > n for o, n in zip(t_old.shape, t_new.shape)):
+                raise ValueError(f"{name}: cannot widen {tuple(t_old.shape)} to {tuple(t_new.shape)}")
+            owner, _, leaf = name.rpartition(".")
+            scale = _gain(old_mods[owner]) / _gain(new_mods[owner]) if leaf == "weight" else 1.0
+            t_new[tuple(slice(0, s) for s in t_old.shape)] = t_old * scale
+            if t_new.ndim >= 2 and t_new.shape[1] > t_old.shape[1]:
+                t_new[: t_old.shape[0], t_old.shape[1] :] = 0  # old outputs ignore the new inputs
+
+
+def widen_state(state, gan: GanSettings):
+    """A TrainState whose G, G_ema and D have ``gan``'s (wider) channels and compute what ``state``'s did.
+    Counters, ADA and train settings carry over; both Adam states start fresh (their shapes changed)."""
+    from .train import new_state
+
+    fixed = {f.name for f in dataclasses.fields(GanSettings)} - {"channel_base", "channel_max"}
+    changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
+    if changed:
+        raise ValueError(f"only the channels can grow on a trained run; {', '.join(changed)} would change")
+    for r in state.gan.resolutions:
+        if gan.channels(r) < state.gan.channels(r):
+            raise ValueError(f"channels can only grow: {state.gan.channels(r)} -> {gan.channels(r)} at {r}x{r}")
+    rng = torch.get_rng_state()
+    out = new_state(gan, state.train)  # seeds torch with the run's seed for the new channels' init ...
+    torch.set_rng_state(rng)  # ... then the resumed run goes on with its own random stream
+    for name in ("G", "G_ema", "D"):
+        widen_module(getattr(state, name), getattr(out, name))
+    for name in ("step", "nimg", "ada_p", "ada_acc", "ada_n", "wall_time"):
+        setattr(out, name, getattr(state, name))
+    return out
