@@ -124,8 +124,9 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
                 raise click.BadParameter(f"{e} (on --resume only --channel-base and --channel-max may grow)") from None
-            click.echo("widened: " + ", ".join(f"{r}x{r} {before.channels(r)} -> {state.gan.channels(r)}" for r in before.resolutions
-                                                if before.channels(r) != state.gan.channels(r)) + " channels", err=True)
+            grew = [f"{r}x{r} {before.channels(r)} -> {state.gan.channels(r)}" for r in before.resolutions
+                    if before.channels(r) != state.gan.channels(r)]
+            click.echo(f"widened: {', '.join(grew)} channels" if grew else "no layer changes width", err=True)
             run_cfg = run_dir / "config.json"
             kept = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
             run_cfg.write_text(json.dumps({**kept, "gan": dataclasses.asdict(state.gan)}, indent=2))

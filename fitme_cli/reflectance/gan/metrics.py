@@ -25,8 +25,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_labels", "reflectance_features", "feature_parts", "region_albedo",
-           "frechet_distance", "modality_consistency", "interpolation_smoothness"]
+__all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_labels", "reflectance_features",
+           "feature_parts", "region_albedo", "frechet_distance", "modality_consistency", "interpolation_smoothness"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
