@@ -127,8 +127,10 @@ def test_discriminator_shape_and_bad_input():
         D(torch.randn(4, 6, 16, 16))
 
 
-def test_every_branch_receives_gradients():
-    G, D = Generator(TINY), Discriminator(TINY)
+@pytest.mark.parametrize("joint", [False, True])
+def test_every_branch_receives_gradients(joint):
+    G, D = Generator(TINY), Discriminator(dataclasses.replace(TINY, d_joint_branch=joint))
+    assert (D.joint_branch is not None) == joint
     D(G(torch.randn(4, TINY.z_dim)).cat()).sum().backward()
     for name, p in list(G.named_parameters()) + list(D.named_parameters()):
         if "noise_strength" in name:
@@ -145,6 +147,22 @@ def test_branches_see_only_their_modality():
     x = torch.randn(2, 7, 16, 16, requires_grad=True)
     D.albedo_branch(x[:, :4]).sum().backward()
     assert x.grad[:, :4].abs().sum() > 0 and x.grad[:, 4:].abs().sum() == 0
+
+
+def test_only_the_joint_branch_sees_albedos_and_normals_together():
+    """Features that reach D's last block from separate branches satisfy F(a1, n1) + F(a2, n2) =
+    F(a1, n2) + F(a2, n1) for any albedos a and normals n: nothing in them depends on where the normals
+    sit on the albedo. The joint branch's features do not."""
+    torch.manual_seed(0)
+    D = Discriminator(dataclasses.replace(TINY, d_joint_branch=True))
+    a1, a2, n1, n2 = torch.randn(4, 4, 16, 16), torch.randn(4, 4, 16, 16), torch.randn(4, 3, 16, 16), torch.randn(4, 3, 16, 16)
+
+    def swap_gap(features):
+        with torch.no_grad():
+            return (features(a1, n1) + features(a2, n2) - features(a1, n2) - features(a2, n1)).abs().max().item()
+
+    assert swap_gap(lambda a, n: torch.cat([D.albedo_branch(a), D.normal_branch(n)], 1)) < 1e-5
+    assert swap_gap(lambda a, n: D.joint_branch(torch.cat([a, n], 1))) > 1e-2
 
 
 def test_named_layers_and_middle_four():
@@ -410,6 +428,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert json.loads((run / "config.json").read_text())["gan"]["channel_base"] == 128
     r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--resolution", "32", "--kimg", "0.024", "--resume"])
     assert r.exit_code == 2 and "only --channel-base and --channel-max may grow" in r.output
+    r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--d-joint-branch", "--kimg", "0.024", "--resume",
+                                  "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "added D's joint branch" in r.output and "widened" not in r.output
+    state = load_checkpoint(run / "checkpoint.safetensors")
+    assert state.gan.d_joint_branch and state.D.joint_branch is not None and state.nimg == 24
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "other"), "--resume"])
     assert r.exit_code == 10 and "nothing to resume" in r.output
     r = CliRunner().invoke(main, ["train", str(tmp_path / "missing"), "-o", str(tmp_path / "x"), "--resolution", "16"])
@@ -596,6 +620,26 @@ def test_widening_keeps_what_g_and_d_compute_and_trains_the_new_channels():
     assert torch.count_nonzero(w[:c_old, c_old:]) == 0 and w.grad[:c_old, c_old:].abs().sum() > 0
     # a fresh optimiser over the wider parameters
     assert sum(p.numel() for g in wide.opt_G.param_groups for p in g["params"]) == sum(p.numel() for p in wide.G.parameters())
+
+
+def test_adding_the_joint_branch_keeps_d_and_trains_it():
+    from fitme_cli.reflectance.gan.widen import widen_state
+
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, channels_last=False))
+    with torch.no_grad():
+        for p in state.D.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    joint = widen_state(state, dataclasses.replace(TINY, d_joint_branch=True, channel_base=128))
+    assert joint.D.joint_branch is not None and joint.gan.d_joint_branch
+    x = torch.randn(4, 7, 16, 16)
+    with torch.no_grad():
+        torch.testing.assert_close(joint.D(x), state.D(x), rtol=1e-5, atol=1e-5)
+    joint.D(x).sum().backward()
+    w = joint.D.conv.weight  # (c4, 3 c4 + 1, 3, 3): albedo, normals, minibatch std, joint
+    c4 = joint.gan.channels(4)
+    assert torch.count_nonzero(w[:, 2 * c4 + 1 :]) == 0 and w.grad[:, 2 * c4 + 1 :].abs().sum() > 0
+    with pytest.raises(ValueError, match="joint branch cannot be removed"):
+        widen_state(joint, dataclasses.replace(joint.gan, d_joint_branch=False))
 
 
 def test_widening_refuses_what_it_cannot_do():

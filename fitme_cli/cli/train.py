@@ -10,7 +10,7 @@ import click
 __all__ = ["command"]
 
 # flag -> (settings class name, field)
-_GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers")
+_GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color")
 
@@ -25,6 +25,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--channel-base", type=int, help="Channels at resolution r: min(base / r, max); may grow on --resume. [2048]")
 @click.option("--channel-max", type=int, help="May grow on --resume. [128]")
 @click.option("--mapping-layers", type=int, help="[2]")
+@click.option("--d-joint-branch/--no-d-joint-branch", default=None,
+              help="A third D branch that sees albedos and normals together (not in the paper); may be added on --resume. [off]")
 @click.option("--batch", type=int, help="[4]")
 @click.option("--kimg", type=float, help="Train until this many thousand real images. [40]")
 @click.option("--r1-gamma", type=float, help="[3.0]")
@@ -123,10 +125,16 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             try:
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
-                raise click.BadParameter(f"{e} (on --resume only --channel-base and --channel-max may grow)") from None
+                raise click.BadParameter(f"{e} (on --resume only --channel-base and --channel-max may grow, "
+                                         "and --d-joint-branch be added)") from None
             grew = [f"{r}x{r} {before.channels(r)} -> {state.gan.channels(r)}" for r in before.resolutions
                     if before.channels(r) != state.gan.channels(r)]
-            click.echo(f"widened: {', '.join(grew)} channels" if grew else "no layer changes width", err=True)
+            if grew:
+                click.echo(f"widened: {', '.join(grew)} channels", err=True)
+            if state.gan.d_joint_branch and not before.d_joint_branch:
+                click.echo("added D's joint branch (albedos and normals together)", err=True)
+            if not grew and state.gan.d_joint_branch == before.d_joint_branch:
+                click.echo("no layer changes width", err=True)
             run_cfg = run_dir / "config.json"
             kept = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
             run_cfg.write_text(json.dumps({**kept, "gan": dataclasses.asdict(state.gan)}, indent=2))

@@ -1,6 +1,7 @@
 """BRDF-GAN (FitMe Sec. 3.1): a StyleGAN2 generator whose blocks from ``branch_resolution`` up are
 copied per reflectance modality, and a residual discriminator with one branch for the albedos and one
-for the normals, joined before the last block.
+for the normals, joined before the last block (optionally a third branch that sees both, our deviation:
+``GanSettings.d_joint_branch``).
 
 Network space: every channel spread over roughly unit scale, so that no modality is invisible to D (the
 paper's point about the albedos' and normals' very different statistics). ``encode_maps`` /
@@ -46,6 +47,10 @@ class GanSettings:
     specular_offset: float = 0.1  # network-space encodings (module docstring); part of the model
     specular_scale: float = 0.1
     normal_scale: float = 0.1
+    # D only. A third D branch on A_D (+) A_S (+) N_S. The paper's branches meet at 4x4, where D cannot
+    # see whether a pore's dark albedo sits on its cavity: rolling a trained D's normals by 1-6 texels
+    # against the albedos moved its logits 0.01-0.05 beyond rolling both (docs/brdf_gan.md).
+    d_joint_branch: bool = False
 
     def __post_init__(self) -> None:
         for name in ("resolution", "branch_resolution"):
@@ -378,15 +383,19 @@ class _DBranch(nn.Module):
 
 class Discriminator(nn.Module):
     """(B, 7, R, R) in network space -> (B,) logits. D_A sees A_D (+) A_S, D_N sees N_S; their 4x4
-    features are concatenated for the last block (minibatch std, conv, two fully connected layers)."""
+    features are concatenated for the last block (minibatch std, conv, two fully connected layers).
+    With ``d_joint_branch`` a third branch sees all 7 channels; its 4x4 features are appended after the
+    minibatch std (which stays over D_A and D_N), so a trained D grows one with zero weights
+    (gan/widen.py) and still gives the same logits."""
 
     def __init__(self, s: GanSettings = GanSettings(), mbstd_group: int = 4):
         super().__init__()
         self.settings, self.mbstd_group = s, mbstd_group
         self.albedo_branch = _DBranch(4, s)
         self.normal_branch = _DBranch(3, s)
+        self.joint_branch = _DBranch(N_CHANNELS, s) if s.d_joint_branch else None
         c4 = s.channels(4)
-        self.conv = _Conv(2 * c4 + 1, c4, 3, clamp=s.conv_clamp)
+        self.conv = _Conv((3 if s.d_joint_branch else 2) * c4 + 1, c4, 3, clamp=s.conv_clamp)
         self.fc = _Linear(c4 * 16, c4, act=True)
         self.out = _Linear(c4, 1)
 
@@ -404,6 +413,8 @@ class Discriminator(nn.Module):
         r = self.settings.resolution
         if img.ndim != 4 or img.shape[1:] != (N_CHANNELS, r, r):
             raise ValueError(f"expected images of shape (B, {N_CHANNELS}, {r}, {r}), got {tuple(img.shape)}")
-        x = torch.cat([self.albedo_branch(img[:, :4]), self.normal_branch(img[:, 4:])], 1)
-        x = self.conv(self._mbstd(x))
+        x = self._mbstd(torch.cat([self.albedo_branch(img[:, :4]), self.normal_branch(img[:, 4:])], 1))
+        if self.joint_branch is not None:
+            x = torch.cat([x, self.joint_branch(img)], 1)
+        x = self.conv(x)
         return self.out(self.fc(x.flatten(1))).squeeze(1)

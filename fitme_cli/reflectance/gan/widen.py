@@ -6,7 +6,9 @@ read the new channels into old ones start at zero, so the widened G draws the sa
 widened D gives the same logits until training moves them. Equalised learning rate scales a weight
 by 1/sqrt(fan in) at run time; where that gain changes with the width, the stored weights are rescaled
 so the effective weight stays. The modulated convs need no rescale: demodulation divides by the norm
-over the input channels, which zero columns do not change.
+over the input channels, which zero columns do not change. The same way D can gain its joint branch
+(``GanSettings.d_joint_branch``): the new branch starts from its init and the last block reads its
+features through zero weights.
 """
 
 from __future__ import annotations
@@ -31,17 +33,19 @@ def _gain(module: nn.Module) -> float:
 
 
 def widen_module(old: nn.Module, new: nn.Module) -> None:
-    """Copy ``old``'s parameters and buffers into ``new`` (same architecture, each tensor at least as
-    large in every dimension). ``new`` keeps its own init for the added output channels; weights of old
-    outputs reading added inputs are zeroed. Raises ValueError on names or shapes that do not fit."""
+    """Copy ``old``'s parameters and buffers into ``new`` (the same tensors, each at least as large in
+    every dimension, plus possibly tensors of added submodules). ``new`` keeps its own init for added
+    submodules and output channels; weights of old outputs reading added inputs are zeroed. Raises
+    ValueError on tensors ``new`` lacks and on shapes that do not fit."""
     old_mods, new_mods = dict(old.named_modules()), dict(new.named_modules())
     old_state = old.state_dict()
     new_state = new.state_dict()
-    if set(old_state) != set(new_state):
-        raise ValueError(f"not the same architecture: tensors only in the old one {sorted(set(old_state) - set(new_state))[:3]}, "
-                         f"only in the new one {sorted(set(new_state) - set(old_state))[:3]}")
+    if set(old_state) - set(new_state):
+        raise ValueError(f"not the same architecture: tensors only in the old one {sorted(set(old_state) - set(new_state))[:3]}")
     with torch.no_grad():
         for name, t_new in new_state.items():
+            if name not in old_state:
+                continue  # an added submodule: its init, read through zero weights by the old outputs
             t_old = old_state[name]
             if t_old.shape == t_new.shape:
                 t_new.copy_(t_old)
@@ -56,14 +60,17 @@ def widen_module(old: nn.Module, new: nn.Module) -> None:
 
 
 def widen_state(state, gan: GanSettings):
-    """A TrainState whose G, G_ema and D have ``gan``'s (wider) channels and compute what ``state``'s did.
+    """A TrainState whose G, G_ema and D have ``gan``'s (wider) channels, and D the joint branch if ``gan``
+    asks for it, and which computes what ``state``'s did.
     Counters, ADA and train settings carry over; both Adam states start fresh (their shapes changed)."""
     from .train import new_state
 
-    fixed = {f.name for f in dataclasses.fields(GanSettings)} - {"channel_base", "channel_max"}
+    fixed = {f.name for f in dataclasses.fields(GanSettings)} - {"channel_base", "channel_max", "d_joint_branch"}
     changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
     if changed:
         raise ValueError(f"only the channels can grow on a trained run; {', '.join(changed)} would change")
+    if state.gan.d_joint_branch and not gan.d_joint_branch:
+        raise ValueError("D's joint branch cannot be removed from a run that has one (its trained weights would be lost)")
     for r in state.gan.resolutions:
         if gan.channels(r) < state.gan.channels(r):
             raise ValueError(f"channels can only grow: {state.gan.channels(r)} -> {gan.channels(r)} at {r}x{r}")
