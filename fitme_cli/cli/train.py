@@ -61,6 +61,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     import torch
 
     from ..errors import InputNotFound, OutputNotWritable
+    from ..io.atomic import atomic_write_bytes
     from ..reflectance.gan.data import load_dataset
     from ..reflectance.gan.networks import GanSettings
     from ..reflectance.gan.train import (TrainSettings, load_checkpoint, new_state, reset_mean_image, save_checkpoint,
@@ -137,7 +138,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                 click.echo("no layer changes width", err=True)
             run_cfg = run_dir / "config.json"
             kept = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
-            run_cfg.write_text(json.dumps({**kept, "gan": dataclasses.asdict(state.gan)}, indent=2))
+            # atomic: the run's only record of its settings besides the checkpoint
+            atomic_write_bytes(run_cfg, json.dumps({**kept, "gan": dataclasses.asdict(state.gan)}, indent=2).encode())
         gan_settings = state.gan
         click.echo(f"resuming at {state.nimg / 1000:.2f} kimg", err=True)
     else:
@@ -148,9 +150,9 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         except OSError as e:
             raise OutputNotWritable(f"cannot create run directory: {e.strerror}", run_dir) from None
         state = None
-        (run_dir / "config.json").write_text(json.dumps({"gan": dataclasses.asdict(gan_settings),
-                                                         "train": dataclasses.asdict(train_settings),
-                                                         "data": str(data_dir.resolve())}, indent=2))
+        atomic_write_bytes(run_dir / "config.json", json.dumps({"gan": dataclasses.asdict(gan_settings),
+                                                                "train": dataclasses.asdict(train_settings),
+                                                                "data": str(data_dir.resolve())}, indent=2).encode())
     data = load_dataset(data_dir, gan_settings, limit=limit, progress=True)
     if state is None:
         state = new_state(gan_settings, train_settings, data_mean=data.float().mean(0))
