@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -280,6 +282,62 @@ def test_a_few_steps_on_tiny_data_lower_the_loss():
     assert state.nimg == 800 and state.step == 100
 
 
+def test_moment_term_known_values_gradient_and_target():
+    from fitme_cli.reflectance.gan.train import batch_moments, data_moments, moment_loss
+
+    x = torch.zeros(2, 7, 4, 4)
+    x[0] += 1.0  # channel means 0.5, stds sqrt(8 / 31) (unbiased over 32 values)
+    m = batch_moments(x)
+    assert m.shape == (2, 7)
+    torch.testing.assert_close(m[0], torch.full((7,), 0.5))
+    torch.testing.assert_close(m[1], torch.full((7,), math.sqrt(8 / 31)))
+    assert moment_loss(x, m).item() == 0.0
+    target = m.clone()
+    target[0, 2] += 0.1
+    target[1, 5] -= 0.2
+    assert moment_loss(x, target).item() == pytest.approx(0.1**2 + 0.2**2)
+    y = torch.randn(4, 7, 6, 6, dtype=torch.float64, requires_grad=True)
+    tgt = torch.rand(2, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    assert torch.autograd.gradcheck(lambda t: moment_loss(t, tgt), (y,))
+    # the target is what a batch of that size has on average: a batch of 2 spreads less than the whole set
+    g = torch.Generator().manual_seed(3)
+    data = torch.randn(256, 1, 1, 1, generator=g) + 0.1 * torch.randn(256, 7, 4, 4, generator=g)  # samples differ
+    t2 = data_moments(data, 2, draws=400)
+    torch.testing.assert_close(t2[0], data.mean(dim=(0, 2, 3)), atol=0.15, rtol=0)
+    assert (t2[1] < 0.85 * data.std(dim=(0, 2, 3))).all()
+    torch.testing.assert_close(data_moments(data, 256, draws=50)[1], data.std(dim=(0, 2, 3)), atol=0.08, rtol=0)
+    with pytest.raises(ValueError, match=r"expected \(N >= 8, C, H, W\) data, got \(4, 7, 4, 4\)"):
+        data_moments(data[:4], 8)
+
+
+def test_moment_weight_pulls_the_fakes_toward_the_data_moments():
+    """Same seed, same steps: with the moment term G's channel means end closer to the data's; it needs
+    the data moments, and a bad weight is refused."""
+    from fitme_cli.reflectance.gan.train import data_moments
+
+    data = _tiny_data()
+
+    def run(weight):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, moment_weight=weight))
+        state.moments = data_moments(data, 8)
+        torch.manual_seed(0)
+        losses = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+                  for i in range(30)]
+        with torch.no_grad():
+            fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
+        return (fake.mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean(), losses
+
+    off, l_off = run(0.0)
+    on, l_on = run(50.0)
+    assert on < 0.7 * off, (float(on), float(off))
+    assert all(d["loss_moment"] == 0.0 for d in l_off) and l_on[-1]["loss_moment"] < l_on[0]["loss_moment"]
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, moment_weight=1.0))
+    with pytest.raises(ValueError, match="needs state.moments"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match="moment_weight must be finite and >= 0, got -1.0"):
+        TrainSettings(moment_weight=-1.0)
+
+
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
     data = _tiny_data()
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
@@ -406,13 +464,16 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
-                                  "--ada-target", "0.8", "--no-ada-color", "--threads", "1"])
+                                  "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--threads", "1"])
     assert r.exit_code == 0, r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
-    # the EMA half-life and the learning rates may change on resume, and the optimiser uses the new rate
+    # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
+    # the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
     assert state.train.g_lr == 0.001 and state.train.d_lr == 0.0025 and state.train.ada_target == 0.8
-    assert state.train.ada_color is False
+    assert state.train.ada_color is False and state.train.moment_weight == 10.0
+    lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert lines[-1]["loss_moment"] > 0 and lines[0]["loss_moment"] == 0  # recorded; 0 while the term was off
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output

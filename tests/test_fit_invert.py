@@ -128,8 +128,37 @@ def test_effects_forced_without_the_selector_get_their_lights(models_root, force
     assert all(np.isfinite(list(h.values())).all() for h in res.history)
 
 
+def test_start_jitter_nudges_only_the_start_and_is_seeded(models_root):
+    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+    from fitme_cli.shape.model import load_shape_model
+
+    torch.manual_seed(3)
+    sm = load_shape_model(models_root)
+    G = Generator(GanSettings(resolution=16, branch_resolution=16, channel_base=64, channel_max=16, z_dim=16, w_dim=16))
+    lights = Lights(torch.full((1, 3), 0.5), torch.tensor([[[0.0, 0.0, 1.0]]]), torch.full((1, 1, 3), 0.5))
+    with torch.no_grad():
+        maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
+    p, _, _ = _synthetic_photo(sm, 64, maps, lights)
+    desc = load_dlib_resnet(models_root)
+
+    def start_w(jitter, seed):
+        s = InversionSettings(iterations=1, lr=1e-12, render_size=64, select_effects=False, seed=seed, start_jitter=jitter,
+                              effects=Effects(specular=False, subsurface=False), lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4))
+        return invert([p], G, sm, desc, sm.landmarks, np.arange(10), s).ws[0, 0]
+
+    w_avg = G.w_avg.detach()
+    plain = start_w(0.0, 1)
+    torch.testing.assert_close(plain, w_avg, atol=1e-9, rtol=0)  # lr 1e-12: the result is the start
+    a, b, c = start_w(1e-3, 1), start_w(1e-3, 1), start_w(1e-3, 2)
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert 0.5e-3 < float((a - w_avg).std()) < 2e-3
+
+
 def test_inversion_settings_are_checked():
     from fitme_cli.fitting.invert import InversionSettings
+
+    with pytest.raises(ValueError, match=r"start_jitter must be finite and >= 0, got -1e-05"):
+        InversionSettings(start_jitter=-1e-5)
 
     with pytest.raises(ValueError, match=r"noise_gain must be in \[0, 1\], got -0.1"):
         InversionSettings(noise_gain=-0.1)

@@ -1,12 +1,15 @@
 """The CI regression run: fit the sample face (the astronaut) and two synthetic subjects at the fast
 preset with a small budget, and compare every accuracy metric with a committed baseline JSON.
 
-A metric regresses when it is worse than the baseline by more than ``max(abs, rel * |baseline|)``
-(``TOLERANCES``; "worse" is up for errors, down for the identity similarity). On one machine at one
-thread the fit is deterministic, but a 15-iteration fit is chaotic across machines and thread counts
-(see ``TOLERANCES``), so the tolerances are wide: they catch a real loss of accuracy (a broken loss
-term, a wrong learning rate), not drift of tens of percent. Improvements never fail: rewrite the
-baseline on purpose with ``--update-baseline``."""
+A 15-iteration fit is chaotic: another CPU's float rounding (AVX2 against AVX-512 kernels, 1 or 2
+threads) moves its result as far as a 1e-5 nudge of the starting w does. So each case is fitted
+``members`` times, member 0 as is and the others from nudged starts (``FitSettings.member``), and every
+metric is the median of the members. A metric regresses when its median is worse than the baseline's
+by more than ``max(abs, rel * |baseline|, gain * |start - baseline|)`` (``Tolerance``; "worse" is up for
+errors, down for the identity similarity; ``start`` is the same metric after 1 iteration, recorded in
+the baseline): the tolerances catch a real loss of accuracy (a broken loss term, a wrong sign or
+learning rate: a fit that keeps less than half of what it gains over its start), not chaos.
+Improvements never fail: rewrite the baseline on purpose with ``--update-baseline``."""
 
 from __future__ import annotations
 
@@ -18,47 +21,57 @@ from pathlib import Path
 
 from .run import METRICS, FitSettings
 
-__all__ = ["RegressSettings", "Tolerance", "TOLERANCES", "Regression", "run_regress", "compare", "write_baseline",
-           "read_baseline", "format_regressions"]
+__all__ = ["RegressSettings", "Tolerance", "TOLERANCES", "Regression", "run_regress", "median_metrics", "compare",
+           "write_baseline", "read_baseline", "format_regressions"]
 
 
 @dataclass(frozen=True)
 class Tolerance:
     abs: float
     rel: float = 0.0
+    gain: float = 0.0  # share of the fit's gain over its start (baseline vs start) that may be lost
 
-    def allowed(self, baseline: float) -> float:
-        return max(self.abs, self.rel * abs(baseline))
+    def allowed(self, baseline: float, start: float | None = None) -> float:
+        g = self.gain * abs(start - baseline) if start is not None and math.isfinite(start) else 0.0
+        return max(self.abs, self.rel * abs(baseline), g)
 
 
-# Measured spread of one 15-iteration fit across machines and thread counts (2026-11-23: the baseline's
-# VM vs a second VM at 1 and 2 threads, same code and with this commit's kernels, which only reorder
-# float sums): synthetic_02's landmark error 3.2-6.6 px around a 3.9 px baseline, shape 1.16-1.37 mm,
-# albedo L1 0.028-0.041, ΔE 4.0-5.5, photometric 11.6-15.9 levels, the astronaut's identity 0.22-0.27.
-# A short fit is chaotic: a float rounding difference picks another local minimum. The tolerances
-# absorb that spread; what they catch is breakage (a dropped loss term, a wrong sign or learning rate
-# moves these metrics by multiples, not by tens of percent).
+# Measured spread of one 15-iteration fit, five members (member 0 and four starts nudged by 1e-5) on one
+# AVX2 machine at 1 thread (2026-11-25): synthetic_01's albedo ΔE 3.2 / 3.9 / 4.5 / 8.7 / 17.0 (the
+# albedo's scale trades off with the light's: the gained ΔE stays at 2.8-3.8), its landmarks 4.0-8.4 px,
+# synthetic_02's 6.8-8.4 px, the astronaut's identity 0.24-0.31. Member 0 alone went from ΔE 2.9 (the
+# AVX-512 machine that wrote the previous baseline) to 8.7 here, on the same code. The medians move far
+# less; the tolerances absorb what is left, and what they catch is breakage (a dropped loss term, a wrong
+# sign or learning rate moves these metrics by multiples, or keeps the fit at its start).
 TOLERANCES: dict[str, Tolerance] = {
-    "landmark_px": Tolerance(1.5, 0.75),
-    "shape_mm": Tolerance(0.1, 0.25),
-    "shape_posed_mm": Tolerance(0.1, 0.25),
-    "albedo_l1": Tolerance(0.01, 0.5),
-    "albedo_delta_e": Tolerance(1.0, 0.4),
-    "albedo_delta_e_gain": Tolerance(0.75, 0.4),
-    "normals_deg": Tolerance(0.05, 0.25),
-    "identity_sim": Tolerance(0.08),
-    "photometric": Tolerance(2.0, 0.3),
+    "landmark_px": Tolerance(1.5, 0.75, 0.5),
+    "shape_mm": Tolerance(0.1, 0.25, 0.5),
+    "shape_posed_mm": Tolerance(0.1, 0.25, 0.5),
+    "albedo_l1": Tolerance(0.01, 0.5, 0.5),
+    "albedo_delta_e": Tolerance(1.0, 0.4, 0.5),
+    "albedo_delta_e_gain": Tolerance(0.75, 0.4, 0.5),
+    "normals_deg": Tolerance(0.05, 0.25, 0.5),
+    "identity_sim": Tolerance(0.08, 0.0, 0.5),
+    "photometric": Tolerance(2.0, 0.3, 0.5),
 }
 
 
 @dataclass(frozen=True)
 class RegressSettings:
-    """The regression budget: the fast preset cut to ``iterations``."""
+    """The regression budget: the fast preset cut to ``iterations``, ``members`` fits per case (medians)."""
 
     iterations: int = 15
     synthetic_seeds: tuple[int, ...] = (1, 2)
     sample_photos: tuple[str, ...] = ("astronaut",)
     synthetic_size: int = 512
+    members: int = 5
+    jitter: float = 1e-5  # InversionSettings.start_jitter of members 1 ...
+
+    def __post_init__(self) -> None:
+        if self.members < 1:
+            raise ValueError(f"RegressSettings.members must be >= 1, got {self.members}")
+        if self.iterations < 1:
+            raise ValueError(f"RegressSettings.iterations must be >= 1, got {self.iterations}")
 
     def fit_settings(self) -> FitSettings:
         return FitSettings.from_preset("fast", iterations=self.iterations)
@@ -66,7 +79,8 @@ class RegressSettings:
     def as_json(self) -> dict:
         # through JSON, so tuples compare equal to the lists a baseline file reads back as
         return json.loads(json.dumps({"fit": asdict(self.fit_settings()), "synthetic_seeds": list(self.synthetic_seeds),
-                "sample_photos": list(self.sample_photos), "synthetic_size": self.synthetic_size}))
+                "sample_photos": list(self.sample_photos), "synthetic_size": self.synthetic_size,
+                "members": self.members, "jitter": self.jitter}))
 
 
 @dataclass(frozen=True)
@@ -84,31 +98,52 @@ class Regression:
                 f"(worse by {abs(self.current - self.baseline):.4g} > allowed {self.allowed:.4g})")
 
 
-def run_regress(s: RegressSettings = RegressSettings(), models=None,
-                log=lambda msg: None) -> dict[str, dict[str, float]]:
-    """Fit every regression case; returns {subject: {metric: value}} (NaN where not measurable; a
-    subject whose fit failed has {"status": ...} only (the cases are regenerated in memory,
-    deterministically: nothing to write), which ``compare`` reports as missing metrics)."""
+def run_regress(s: RegressSettings = RegressSettings(), models=None, log=lambda msg: None,
+                start: bool = False) -> dict[str, dict[str, float]]:
+    """Fit every regression case ``s.members`` times; returns {subject: {metric: median}} (NaN where not
+    measurable; a subject most of whose fits failed has {"status": ...} only, which ``compare`` reports
+    as missing metrics). The cases are regenerated in memory, deterministically: nothing to write.
+    ``start``: instead, the metrics after 1 iteration of member 0 (where the fit starts from)."""
     import time
+    from dataclasses import replace
 
     from ..fitting.synthetic import SyntheticSettings, make_subject
     from ..io.images import sample_photo
     from .run import fit_photos, load_models
 
     models = models or load_models()
-    out: dict[str, dict[str, float]] = {}
     fs = s.fit_settings()
+    members = [replace(fs, iterations=1)] if start else [fs.member(m, s.jitter) for m in range(s.members)]
+    cases = []
     for name in s.sample_photos:
         img = sample_photo(name)
-        t = time.perf_counter()
-        out[name] = _metrics(lambda: fit_photos([img.rgb], models, fs, img.focal_length_35mm))
-        log(f"regress: {name} in {time.perf_counter() - t:.1f} s")
+        cases.append((name, [img.rgb], img.focal_length_35mm, None))
     for seed in s.synthetic_seeds:
         subj = make_subject(models.G, models.shape_model, models.renderer,
                             SyntheticSettings(size=s.synthetic_size, n_views=1, seed=seed))
+        cases.append((f"synthetic_{seed:02d}", list(subj.photos), subj.settings.focal_35mm, subj))
+    out: dict[str, dict[str, float]] = {}
+    for name, photos, focal, truth in cases:
         t = time.perf_counter()
-        out[f"synthetic_{seed:02d}"] = _metrics(lambda: fit_photos(list(subj.photos), models, fs, subj.settings.focal_35mm, subj))
-        log(f"regress: synthetic_{seed:02d} in {time.perf_counter() - t:.1f} s")
+        runs = [_metrics(lambda: fit_photos(photos, models, f, focal, truth)) for f in members]
+        out[name] = median_metrics(runs)
+        log(f"regress: {name}, {len(members)} fit(s) in {time.perf_counter() - t:.1f} s")
+    return out
+
+
+def median_metrics(runs: list[dict[str, float]]) -> dict[str, float]:
+    """Per metric, the median over the runs that did not fail (NaN where none measured it); when most
+    runs failed, the first failure's {"status": ...}."""
+    import numpy as np
+
+    ok = [r for r in runs if "status" not in r]
+    if 2 * len(ok) <= len(runs):
+        failed = [r for r in runs if "status" in r]
+        return {"status": failed[0]["status"] if failed else "no fits"}
+    out = {}
+    for k in METRICS:
+        vals = [float(r[k]) for r in ok if r.get(k) is not None and math.isfinite(float(r[k]))]
+        out[k] = float(np.median(vals)) if vals else math.nan
     return out
 
 
@@ -124,11 +159,15 @@ def _metrics(fit) -> dict[str, float]:
 
 def compare(current: dict[str, dict[str, float]], baseline: dict, tolerances: dict[str, Tolerance] | None = None
             ) -> list[Regression]:
-    """Every (subject, metric) of the baseline that the current run is worse on than allowed, or lacks."""
+    """Every (subject, metric) of the baseline that the current run is worse on than allowed, or lacks.
+    The baseline's "start" (the metrics after 1 iteration), where present, widens each tolerance by its
+    ``gain`` share of the fit's gain over the start."""
     tol = tolerances or {k: Tolerance(**v) for k, v in baseline.get("tolerances", {}).items()} or TOLERANCES
     out = []
+    starts = baseline.get("start") or {}
     for subject, base in baseline["subjects"].items():
         cur = current.get(subject, {})
+        start = starts.get(subject, {})
         for metric, b in base.items():
             if metric not in METRICS or b is None or not math.isfinite(b):
                 continue  # not measured for this subject (e.g. shape on a real photo)
@@ -137,7 +176,8 @@ def compare(current: dict[str, dict[str, float]], baseline: dict, tolerances: di
             t = tol.get(metric, TOLERANCES.get(metric))
             if t is None:
                 raise ValueError(f"compare: no tolerance for metric {metric!r}; expected one of {', '.join(TOLERANCES)}")
-            allowed = t.allowed(b)
+            st = start.get(metric)
+            allowed = t.allowed(b, None if st is None else float(st))
             worse = (b - c) if METRICS[metric] else (c - b)
             if not math.isfinite(c) or worse > allowed:
                 out.append(Regression(subject, metric, b, c, allowed))
@@ -148,18 +188,25 @@ def format_regressions(regs: list[Regression]) -> str:
     return "\n".join(f"  REGRESSION {r}" for r in regs)
 
 
-def write_baseline(path: Path, current: dict[str, dict[str, float]], s: RegressSettings) -> None:
+def write_baseline(path: Path, current: dict[str, dict[str, float]], s: RegressSettings,
+                   start: dict[str, dict[str, float]] | None = None) -> None:
+    """Write the baseline: ``current`` (``run_regress``) and, when given, ``start`` (``run_regress(...,
+    start=True)``), which widens the tolerances (``compare``)."""
     import torch
 
     from .. import __version__
 
-    clean = {sub: {k: (None if isinstance(v, float) and not math.isfinite(v) else (round(v, 5) if isinstance(v, float) else v))
-                   for k, v in m.items()} for sub, m in current.items()}
-    doc = {"schema": 1, "what": "fitme bench --regress baseline: accuracy metrics per subject (docs/benchmarks.md)",
+    def clean(runs):
+        return {sub: {k: (None if isinstance(v, float) and not math.isfinite(v) else (round(v, 5) if isinstance(v, float) else v))
+                      for k, v in m.items()} for sub, m in runs.items()}
+    doc = {"schema": 2, "what": "fitme bench --regress baseline: accuracy metrics per subject, medians of "
+           "RegressSettings.members fits, and the metrics after 1 iteration (start) (docs/benchmarks.md)",
            "settings": s.as_json(), "tolerances": {k: asdict(v) for k, v in TOLERANCES.items()},
            "made_with": {"fitme": __version__, "torch": torch.__version__, "python": platform.python_version(),
-                         "machine": platform.machine()},
-           "subjects": clean}
+                         "machine": platform.machine(), "threads": torch.get_num_threads()},
+           "subjects": clean(current)}
+    if start is not None:
+        doc["start"] = clean(start)
     Path(path).write_text(json.dumps(doc, indent=1) + "\n")
 
 
@@ -172,10 +219,13 @@ def read_baseline(path: Path, s: RegressSettings) -> dict:
     for key in ("settings", "subjects"):
         if key not in doc:
             raise ValueError(f"{p}: not a fitme bench baseline (no {key!r})")
+    if set(doc.get("start") or {}) - set(doc["subjects"]):
+        raise ValueError(f"{p}: 'start' names subjects that 'subjects' does not: "
+                         f"{sorted(set(doc['start']) - set(doc['subjects']))}")
     if doc["settings"] != s.as_json():
         raise ValueError(f"{p}: made with settings {doc['settings']}, this run uses {s.as_json()}; "
                          "rewrite it with --update-baseline")
-    for sub, m in doc["subjects"].items():
+    for sub, m in [*doc["subjects"].items(), *(doc.get("start") or {}).items()]:
         for k in m:
             if k != "status" and k not in METRICS:
                 raise ValueError(f"{p}: subject {sub} has unknown metric {k!r}; expected some of {', '.join(METRICS)}")

@@ -40,6 +40,7 @@ class FitSettings:
     select_effects: bool = False
     forced_effects: tuple[tuple[str, bool], ...] = ()
     seed: int = 0
+    start_jitter: float = 0.0  # InversionSettings.start_jitter
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
@@ -55,6 +56,15 @@ class FitSettings:
         for name, _ in self.forced_effects:
             if name not in EFFECT_NAMES:
                 raise ValueError(f"FitSettings.forced_effects: unknown effect {name!r}; expected one of {', '.join(EFFECT_NAMES)}")
+
+    def member(self, m: int, jitter: float) -> FitSettings:
+        """The m-th member of an ensemble of fits: member 0 is these settings, member m > 0 starts from
+        w_avg nudged by ``jitter`` (seeded by m): the spread a fit has across CPUs, on one machine."""
+        from dataclasses import replace
+
+        if m < 0:
+            raise ValueError(f"FitSettings.member: m must be >= 0, got {m}")
+        return self if m == 0 else replace(self, seed=m, start_jitter=jitter)
 
     @staticmethod
     def from_preset(name: str, **overrides) -> FitSettings:
@@ -131,11 +141,12 @@ class FitOutcome:
 
 
 def fit_photos(photos: list[np.ndarray], models: FitModels, s: FitSettings = FitSettings(),
-               focal_35mm: float | None = None, truth=None) -> FitOutcome:
+               focal_35mm: float | None = None, truth=None, detect_score: float = 0.5) -> FitOutcome:
     """Fit ``photos`` ((H, W, 3) uint8 RGB, one person) and measure the result. ``truth``: a subject
     with ``n_views``, ``ibug68``, ``neutral``, ``vertices``, ``maps`` (``SyntheticSubject`` or
-    ``bench.dataset.GroundTruth``) seen in the same photos, or None. Raises NoFaceFound (the first
-    photo without a face) as ``fitme fit`` would for a single photo."""
+    ``bench.dataset.GroundTruth``) seen in the same photos, or None. ``detect_score``: BlazeFace's
+    score threshold (``DetectSettings.score_threshold``). Raises NoFaceFound (the first photo without
+    a face) as ``fitme fit`` would for a single photo."""
     import torch
 
     from ..fitting.invert import InversionSettings, TuningSettings, invert, prepare_photo, tune
@@ -156,13 +167,14 @@ def fit_photos(photos: list[np.ndarray], models: FitModels, s: FitSettings = Fit
     t0 = time.perf_counter()
     prepared = []
     for photo in photos:
-        lm = detect(photo, DetectSettings(identity=False)).face.landmarks  # NoFaceFound propagates
+        lm = detect(photo, DetectSettings(identity=False, score_threshold=detect_score)).face.landmarks  # NoFaceFound propagates
         prepared.append(prepare_photo(photo, lm.points[:, :2], lm.ibug68, focal_35mm, size, 1.6,
                                       lambda c, pts: photo_skin_mask(c, pts, topo.triangles, topo.contours)))
     jaw = np.unique(topo.contours["face_oval"])
     inv_s = InversionSettings(iterations=s.iterations, render_size=size, coarse_fraction=s.coarse_fraction,
                               coarse_resolution=s.coarse_resolution, select_effects=s.select_effects,
-                              forced_effects=s.forced_effects, seed=s.seed)
+                              forced_effects=s.forced_effects, seed=s.seed,
+                              start_jitter=s.start_jitter)
     inv = invert(prepared, G, sm, models.descriptor, sm.landmarks, jaw, inv_s, prior=models.prior)
     maps, tune_hist = inv.maps, []
     if s.tune_iterations:

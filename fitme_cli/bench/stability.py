@@ -31,14 +31,19 @@ class StabilitySettings:
     coarse_fraction: float = 0.0  # the fast preset's (no coarse phase; 0.6 until 2026-11-25)
     size: int = 512  # synthetic photo side
     # the subject must be one the detector finds in every degraded copy but the extreme yaws, or the suite
-    # tests detection, not fit stability. The 92 kimg BRDF-GAN's seed-1 subject is very dark, and BlazeFace
-    # misses its grayscale and JPEG-q5 copies: synthetic renders have no eyeballs (docs/perception.md, "Skin
-    # tone"; real photos re-toned to every Monk level are found, tests/test_detect.py). Seeds 1-6 with that
-    # model: every case that found a face passed every check; seed 3 found a face in all 9 non-yaw cases
-    seed: int = 3
+    # tests detection, not fit stability. Synthetic renders have no eyeballs (docs/perception.md, "Skin
+    # tone"; real photos re-toned to every Monk level are found, tests/test_detect.py), and BlazeFace scores
+    # them near its threshold: seed 3 (the suite's subject until 2026-11-25) lost its grayscale copy on an
+    # AVX2 machine, where FaceMesh's presence after the landmark passes fell below 0.5. Seed 0 at a score
+    # threshold of 0.3 (FaceMesh's presence still rejects false boxes): every non-yaw copy found with
+    # presence 1.00 and a BlazeFace score of 0.44 (sunglasses) to 0.89 (measured on that machine)
+    seed: int = 0
+    detect_score: float = 0.3
     cases: tuple[str, ...] = CASES
 
     def __post_init__(self) -> None:
+        if not 0 < self.detect_score < 1:
+            raise ValueError(f"StabilitySettings.detect_score must be in (0, 1), got {self.detect_score}")
         if self.iterations < 2:
             raise ValueError(f"StabilitySettings.iterations must be >= 2 (the loss must be seen to decrease), got {self.iterations}")
         bad = [c for c in self.cases if c not in CASES]
@@ -214,7 +219,7 @@ def run_stability(models=None, s: StabilitySettings = StabilitySettings(), log=l
     for case, (photo, focal) in make_cases(models, s).items():
         t = time.perf_counter()
         try:
-            o = fit_photos([photo], models, fs, focal)
+            o = fit_photos([photo], models, fs, focal, detect_score=s.detect_score)
         except NoFaceFound as e:
             results.append(StabilityResult(case, True, "clean failure", f"no face (clean error): {e}"))
             log(f"stability: {case}: no face (clean error)")

@@ -75,7 +75,8 @@ def _regress(out_dir: Path, baseline: Path, update: bool) -> bool:
         click.echo(f"{sub}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items() if k in METRICS and v == v)
                    + (f" [{m['status']}]" if "status" in m else ""))
     if update:
-        write_baseline(baseline, current, s)
+        start = run_regress(s, log=_log, start=True)
+        write_baseline(baseline, current, s, start)
         click.echo(f"baseline written to {baseline}")
         return False
     regs = compare(current, base)

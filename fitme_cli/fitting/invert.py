@@ -14,6 +14,7 @@ and keeps an effect only where it lowers the residual by the selector's threshol
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -68,8 +69,14 @@ class InversionSettings:
     # docs/fitting.md "Noise gain"): default preset 0.513 at 1, 0.570 at 0.35, 0.541 at 0.
     noise_gain: float = 0.35
     seed: int = 0
+    # std of a seeded Gaussian added to the starting w (0: start at w_avg, the paper). A fit is chaotic:
+    # a 1e-5 nudge spreads its result as far as another CPU's float rounding does, so the regression
+    # run fits each case from several nudged starts and compares medians (bench/regress.py)
+    start_jitter: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (self.start_jitter >= 0.0 and math.isfinite(self.start_jitter)):
+            raise ValueError(f"InversionSettings.start_jitter must be finite and >= 0, got {self.start_jitter}")
         if not 0.0 <= self.noise_gain <= 1.0:
             raise ValueError(f"InversionSettings.noise_gain must be in [0, 1], got {self.noise_gain}")
         for name in ("coarse_fraction", "select_fraction"):
@@ -262,6 +269,9 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     pb = _Problem(photos, shape_model, descriptor, landmark_vertices, jaw, s.jaw_weight, s.render_size, dev)
     n = pb.n
     w0 = G.w_avg.detach().clone().view(1, 1, -1)
+    if s.start_jitter > 0:
+        gen = torch.Generator().manual_seed(s.seed)
+        w0 = w0 + s.start_jitter * torch.randn(w0.shape, generator=gen).to(w0)
     w_var = (w0.repeat(1, G.settings.num_ws, 1) if s.w_plus else w0).requires_grad_(True)
 
     def all_ws():
