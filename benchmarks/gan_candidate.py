@@ -6,10 +6,14 @@ A better card alone is not enough: the 107 kimg state (2026-11-25) had a Fréche
 against the shipped 92 kimg model's 0.063 and fitted the sample photos worse (docs/brdf_gan.md).
 
     python -m fitme_cli.reflectance.gan.report RUN_DIR DATA_DIR -o CAND_DIR --truncation-psi 0.5
-    python benchmarks/gan_candidate.py CAND_DIR [--presets fast,default] [--threads 2]
+    python benchmarks/gan_candidate.py CAND_DIR [--presets fast,default] [--threads 2] [--members 3]
 
 Each model runs in its own process; on 2 cores the whole comparison takes ~50 s at the fast preset
-and ~4 min with the default preset added (fits of 6 s and 35 s).
+and ~4 min with the default preset added (fits of 6 s and 35 s), times ``--members``.
+
+One fit per photo is chaotic: the three-photo mean at the default preset moved by up to 0.07 between 1
+and 2 threads (2026-11-25). ``--members M`` fits each photo M times (member 0 and M - 1 starts nudged by
+1e-5, as the regression run's) and reports each photo's median.
 """
 
 from __future__ import annotations
@@ -54,7 +58,16 @@ def card_rows(card: dict) -> dict[str, str]:
     }
 
 
-def _worker(presets: list[str], threads: int) -> None:
+def median_sims(runs: list[dict[str, float]]) -> dict[str, float]:
+    """Each photo's median similarity over the members' runs ({photo: similarity} each, same photos)."""
+    import numpy as np
+
+    if not runs or any(set(r) != set(runs[0]) for r in runs):
+        raise ValueError(f"median_sims: expected runs over the same photos, got {[sorted(r) for r in runs]}")
+    return {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+
+
+def _worker(presets: list[str], threads: int, members: int) -> None:
     """In a process whose FITME_MODELS_DIR is the model under test: one JSON line per preset."""
     import torch
 
@@ -64,9 +77,12 @@ def _worker(presets: list[str], threads: int) -> None:
 
     models, photos = load_models(), collect_photos(None)
     for preset in presets:
-        res = run_real_photos(models, photos, FitSettings.from_preset(preset))
-        print(json.dumps({"preset": preset, "sims": {r.photo: r.render_sim for r in res},
-                          "fit_s": [r.fit_s for r in res]}), flush=True)
+        runs, secs = [], []
+        for m in range(members):
+            res = run_real_photos(models, photos, FitSettings.from_preset(preset).member(m, 1e-5))
+            runs.append({r.photo: r.render_sim for r in res})
+            secs += [r.fit_s for r in res]
+        print(json.dumps({"preset": preset, "sims": median_sims(runs), "members": runs, "fit_s": secs}), flush=True)
 
 
 def _models_with(candidate: Path, shipped: Path, out: Path) -> Path:
@@ -80,9 +96,10 @@ def _models_with(candidate: Path, shipped: Path, out: Path) -> Path:
     return out
 
 
-def _fit_photos(models_dir: Path, presets: list[str], threads: int) -> dict[str, dict]:
+def _fit_photos(models_dir: Path, presets: list[str], threads: int, members: int) -> dict[str, dict]:
     env = dict(os.environ, FITME_MODELS_DIR=str(models_dir))
-    proc = subprocess.run([sys.executable, __file__, "--worker", ",".join(presets), "--threads", str(threads)],
+    proc = subprocess.run([sys.executable, __file__, "--worker", ",".join(presets), "--threads", str(threads),
+                           "--members", str(members)],
                           env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"fits with {models_dir} failed:\n{proc.stderr[-2000:]}")
@@ -95,29 +112,34 @@ def main() -> None:
     ap.add_argument("candidate", type=Path, nargs="?", help="folder with the candidate's brdf_gan.{safetensors,json}")
     ap.add_argument("--presets", default="fast,default")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--members", type=int, default=1, help="fits per photo; each photo's median is reported")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     presets = [p for p in (args.worker or args.presets).split(",") if p]
     if args.worker:
-        _worker(presets, args.threads)
+        _worker(presets, args.threads, args.members)
         return
     from fitme_cli.perception.store import models_dir
 
     shipped = models_dir()
     cand = args.candidate
+    if args.members < 1:
+        ap.error(f"--members must be >= 1, got {args.members}")
     if cand is None or not (cand / "brdf_gan.safetensors").is_file() or not (cand / "brdf_gan.json").is_file():
         ap.error(f"expected a folder with brdf_gan.safetensors and brdf_gan.json, got {cand}")
     cards = {"shipped": json.loads((shipped / "brdf_gan.json").read_text()),
              "candidate": json.loads((cand / "brdf_gan.json").read_text())}
     with tempfile.TemporaryDirectory() as tmp:
-        fits = {"shipped": _fit_photos(shipped, presets, args.threads),
-                "candidate": _fit_photos(_models_with(cand, shipped, Path(tmp) / "models"), presets, args.threads)}
+        fits = {"shipped": _fit_photos(shipped, presets, args.threads, args.members),
+                "candidate": _fit_photos(_models_with(cand, shipped, Path(tmp) / "models"), presets, args.threads,
+                                         args.members)}
     rows = {k: card_rows(c) for k, c in cards.items()}
     for p in presets:
         for k in fits:
             sims = fits[k][p]["sims"]
             vals = list(sims.values())
-            rows[k][f"{p} preset: {' / '.join(sims)}, mean"] = (" / ".join(f"{v:.2f}" for v in vals)
+            med = f", median of {args.members}" if args.members > 1 else ""
+            rows[k][f"{p} preset{med}: {' / '.join(sims)}, mean"] = (" / ".join(f"{v:.2f}" for v in vals)
                                                                + f", **{sum(vals) / len(vals):.3f}**")
     print("| | shipped | candidate |\n|---|---|---|")
     for key in rows["shipped"]:

@@ -72,3 +72,18 @@ def test_models_folder_takes_the_gan_from_the_candidate_and_the_rest_from_the_sh
 def test_a_folder_without_a_candidate_is_refused(tmp_path):
     r = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 2 and "expected a folder with brdf_gan.safetensors and brdf_gan.json" in r.stderr
+
+
+def test_median_sims_per_photo_and_same_photos_only(gc):
+    runs = [{"astronaut": 0.3, "a": 0.9}, {"astronaut": 0.5, "a": 0.1}, {"astronaut": 0.4, "a": 0.2}]
+    assert gc.median_sims(runs) == {"astronaut": 0.4, "a": 0.2}
+    assert gc.median_sims(runs[:1]) == runs[0]
+    with pytest.raises(ValueError, match="same photos"):
+        gc.median_sims([{"astronaut": 0.3}, {"b": 0.3}])
+    with pytest.raises(ValueError, match="same photos"):
+        gc.median_sims([])
+
+
+def test_bad_member_count_is_refused(tmp_path):
+    r = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path), "--members", "0"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--members must be >= 1, got 0" in r.stderr
