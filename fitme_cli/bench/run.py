@@ -6,7 +6,7 @@ ground truth is given, every ``fitting/metrics.py`` metric."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -60,8 +60,6 @@ class FitSettings:
     def member(self, m: int, jitter: float) -> FitSettings:
         """The m-th member of an ensemble of fits: member 0 is these settings, member m > 0 starts from
         w_avg nudged by ``jitter`` (seeded by m): the spread a fit has across CPUs, on one machine."""
-        from dataclasses import replace
-
         if m < 0:
             raise ValueError(f"FitSettings.member: m must be >= 0, got {m}")
         return self if m == 0 else replace(self, seed=m, start_jitter=jitter)
