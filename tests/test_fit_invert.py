@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from fitme_cli.fitting.invert import InversionSettings, PhotoInput, invert
+from fitme_cli.fitting.invert import InversionSettings, PhotoInput, invert, member_settings
 from fitme_cli.reflectance.gan.networks import GanSettings, Generator, decode_maps
 from fitme_cli.reflectance.maps import ReflectanceMaps
 from fitme_cli.render import Camera, Effects, Lights, Renderer
@@ -106,9 +106,8 @@ def test_effect_selection_runs_at_select_fraction_and_user_overrides_win(models_
     assert all(np.isfinite(list(h.values())).all() for h in res.history)
 
 
-@pytest.mark.parametrize("forced", [("sh_ambient",), ("multi_light",), ("sh_ambient", "multi_light")])
-def test_effects_forced_without_the_selector_get_their_lights(models_root, forced):
-    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+def _w_average_photo(models_root):
+    """(shape model, tiny G, a 64^2 photo of the mean face wearing G's W-average maps under a frontal light)."""
     from fitme_cli.shape.model import load_shape_model
 
     torch.manual_seed(3)
@@ -118,6 +117,14 @@ def test_effects_forced_without_the_selector_get_their_lights(models_root, force
     with torch.no_grad():
         maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
     p, _, _ = _synthetic_photo(sm, 64, maps, lights)
+    return sm, G, p
+
+
+@pytest.mark.parametrize("forced", [("sh_ambient",), ("multi_light",), ("sh_ambient", "multi_light")])
+def test_effects_forced_without_the_selector_get_their_lights(models_root, forced):
+    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+
+    sm, G, p = _w_average_photo(models_root)
     s = InversionSettings(iterations=3, render_size=64, coarse_resolution=8, select_effects=False,
                           effects=Effects(specular=False, subsurface=False), forced_effects=tuple((f, True) for f in forced),
                           lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4))
@@ -130,26 +137,20 @@ def test_effects_forced_without_the_selector_get_their_lights(models_root, force
 
 def test_start_jitter_nudges_only_the_start_and_is_seeded(models_root):
     from fitme_cli.perception.dlib_resnet import load_dlib_resnet
-    from fitme_cli.shape.model import load_shape_model
 
-    torch.manual_seed(3)
-    sm = load_shape_model(models_root)
-    G = Generator(GanSettings(resolution=16, branch_resolution=16, channel_base=64, channel_max=16, z_dim=16, w_dim=16))
-    lights = Lights(torch.full((1, 3), 0.5), torch.tensor([[[0.0, 0.0, 1.0]]]), torch.full((1, 1, 3), 0.5))
-    with torch.no_grad():
-        maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
-    p, _, _ = _synthetic_photo(sm, 64, maps, lights)
+    sm, G, p = _w_average_photo(models_root)
     desc = load_dlib_resnet(models_root)
 
-    def start_w(jitter, seed):
-        s = InversionSettings(iterations=1, lr=1e-12, render_size=64, select_effects=False, seed=seed, start_jitter=jitter,
-                              effects=Effects(specular=False, subsurface=False), lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4))
+    def start_w(m):
+        s = member_settings(InversionSettings(iterations=1, lr=1e-12, render_size=64, select_effects=False,
+                                              effects=Effects(specular=False, subsurface=False),
+                                              lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4)), m, 1e-3)
         return invert([p], G, sm, desc, sm.landmarks, np.arange(10), s).ws[0, 0]
 
     w_avg = G.w_avg.detach()
-    plain = start_w(0.0, 1)
+    plain = start_w(0)  # member 0: the settings as given, no nudge
     torch.testing.assert_close(plain, w_avg, atol=1e-9, rtol=0)  # lr 1e-12: the result is the start
-    a, b, c = start_w(1e-3, 1), start_w(1e-3, 1), start_w(1e-3, 2)
+    a, b, c = start_w(1), start_w(1), start_w(2)
     assert torch.equal(a, b) and not torch.equal(a, c)
     assert 0.5e-3 < float((a - w_avg).std()) < 2e-3
 

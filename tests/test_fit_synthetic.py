@@ -240,7 +240,7 @@ def _fit(models, subject, iterations: int, size: int = 128, members: int = 1):
     effect selection). Returns (start, fits, seconds): the start is what ``invert`` starts from (mean
     shape, no expression, W average, PnP cameras); ``fits`` one report per member: member 0 from w_avg,
     member m > 0 from w_avg nudged by 1e-5 (seed m), the spread another CPU's rounding gives a fit."""
-    from fitme_cli.fitting.invert import InversionSettings, invert, prepare_photo
+    from fitme_cli.fitting.invert import InversionSettings, invert, member_settings, prepare_photo
     from fitme_cli.fitting.metrics import evaluate_fit
     from fitme_cli.fitting.pose import initial_camera
     from fitme_cli.fitting.presets import preset
@@ -271,8 +271,7 @@ def _fit(models, subject, iterations: int, size: int = 128, members: int = 1):
     t = time.perf_counter()
     fits = []
     for m in range(members):
-        sm_ = s if m == 0 else replace(s, seed=m, start_jitter=1e-5)
-        res = invert(prepared, G, sm, desc, sm.landmarks, np.unique(topo.contours["face_oval"]), sm_)
+        res = invert(prepared, G, sm, desc, sm.landmarks, np.unique(topo.contours["face_oval"]), member_settings(s, m, 1e-5))
         fits.append(evaluate_fit(subject, sm, res.p_s, res.p_e, res.cameras, res.maps, to_photo))
     seconds = (time.perf_counter() - t) / members
     return start, fits, seconds

@@ -6,7 +6,7 @@ ground truth is given, every ``fitting/metrics.py`` metric."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -59,10 +59,10 @@ class FitSettings:
 
     def member(self, m: int, jitter: float) -> FitSettings:
         """The m-th member of an ensemble of fits: member 0 is these settings, member m > 0 starts from
-        w_avg nudged by ``jitter`` (seeded by m): the spread a fit has across CPUs, on one machine."""
-        if m < 0:
-            raise ValueError(f"FitSettings.member: m must be >= 0, got {m}")
-        return self if m == 0 else replace(self, seed=m, start_jitter=jitter)
+        w_avg nudged by ``jitter`` (seeded by m): ``fitting.invert.member_settings``."""
+        from ..fitting.invert import member_settings
+
+        return member_settings(self, m, jitter)
 
     @staticmethod
     def from_preset(name: str, **overrides) -> FitSettings:

@@ -30,8 +30,8 @@ from ..render.shading import srgb_to_linear
 from .losses import identity_loss, landmark_loss, perceptual_loss, photometric_loss, w_prior
 from .pose import initial_camera
 
-__all__ = ["InversionSettings", "TuningSettings", "PhotoInput", "InversionResult", "TuningResult", "prepare_photo",
-           "invert", "tune"]
+__all__ = ["InversionSettings", "TuningSettings", "member_settings", "PhotoInput", "InversionResult", "TuningResult",
+           "prepare_photo", "invert", "tune"]
 
 
 @dataclass(frozen=True)
@@ -82,6 +82,16 @@ class InversionSettings:
         for name in ("coarse_fraction", "select_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"InversionSettings.{name} must be in [0, 1], got {getattr(self, name)}")
+
+
+def member_settings(s, m: int, jitter: float):
+    """The m-th member of an ensemble of fits of one photo set: member 0 is ``s`` itself, member m > 0
+    is ``s`` seeded by m and started from w_avg nudged by ``jitter`` (``start_jitter``): the spread that
+    another CPU's float rounding gives a fit, on one machine. ``s``: any frozen settings dataclass with
+    ``seed`` and ``start_jitter`` fields (``InversionSettings``, ``bench.run.FitSettings``)."""
+    if m < 0:
+        raise ValueError(f"member_settings: m must be >= 0, got {m}")
+    return s if m == 0 else replace(s, seed=m, start_jitter=jitter)
 
 
 @dataclass(frozen=True)
