@@ -338,6 +338,59 @@ def test_moment_weight_pulls_the_fakes_toward_the_data_moments():
         TrainSettings(moment_weight=-1.0)
 
 
+def test_drift_term_known_values_gradient_and_running_average():
+    """drift_loss's gradient is 2 (running - target) through the batch's moments, whatever the batch's
+    own deviation; update_running is an EMA started by its first batch."""
+    from fitme_cli.reflectance.gan.train import batch_moments, drift_loss, update_running
+
+    x = torch.zeros(2, 7, 4, 4, requires_grad=True)
+    running = torch.zeros(2, 7)
+    target = torch.zeros(2, 7)
+    running[0, 1] = 0.3  # the running mean of channel 1 is 0.3 above the target
+    drift_loss(x, running, target).backward()
+    # d mean_1 / d x = 1 / 32 per texel; the std row's gradient at zero spread is 0 (running std = target)
+    torch.testing.assert_close(x.grad[:, 1], torch.full((2, 4, 4), 2 * 0.3 / 32))
+    assert x.grad[:, [0, 2, 3, 4, 5, 6]].abs().max() == 0
+    # a batch far from the target but a running average on it: no pull at all (the batch term would pull)
+    y = torch.randn(4, 7, 3, 3, requires_grad=True)
+    on_target = batch_moments(torch.randn(64, 7, 3, 3))
+    drift_loss(y, on_target, on_target).backward()
+    assert y.grad.abs().max() == 0
+    z = torch.randn(3, 7, 5, 5, dtype=torch.float64, requires_grad=True)
+    r, t = torch.rand(2, 7, dtype=torch.float64), torch.rand(2, 7, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda v: drift_loss(v, r, t), (z,))
+    a, b = torch.ones(2, 7), torch.full((2, 7), 3.0)
+    torch.testing.assert_close(update_running(None, a, 0.9), a)
+    torch.testing.assert_close(update_running(a, b, 0.9), torch.full((2, 7), 1.2))
+
+
+def test_moment_drift_weight_pulls_the_fakes_toward_the_data_means():
+    from fitme_cli.reflectance.gan.train import data_moments
+
+    data = _tiny_data()
+
+    def run(weight):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01,
+                                              moment_drift_weight=weight, moment_drift_beta=0.8))
+        state.moments = data_moments(data, 8)
+        torch.manual_seed(0)
+        losses = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+                  for i in range(30)]
+        with torch.no_grad():
+            fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
+        return (fake.mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean(), losses
+
+    off, l_off = run(0.0)
+    on, l_on = run(50.0)
+    assert on < 0.7 * off, (float(on), float(off))  # 0.047 against 0.129 measured
+    assert "moment_drift" not in l_off[0] and l_on[-1]["moment_drift"] < l_on[0]["moment_drift"]
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, moment_drift_weight=1.0))
+    with pytest.raises(ValueError, match="needs state.moments"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match="moment_drift_beta must be in"):
+        TrainSettings(moment_drift_beta=1.0)
+
+
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
     data = _tiny_data()
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
@@ -464,16 +517,18 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
-                                  "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--threads", "1"])
+                                  "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
+                                  "--threads", "1"])
     assert r.exit_code == 0, r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
     # the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
     assert state.train.g_lr == 0.001 and state.train.d_lr == 0.0025 and state.train.ada_target == 0.8
-    assert state.train.ada_color is False and state.train.moment_weight == 10.0
+    assert state.train.ada_color is False and state.train.moment_weight == 10.0 and state.train.moment_drift_weight == 5.0
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert lines[-1]["loss_moment"] > 0 and lines[0]["loss_moment"] == 0  # recorded; 0 while the term was off
+    assert lines[-1]["moment_drift"] > 0 and "moment_drift" not in lines[0]
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output

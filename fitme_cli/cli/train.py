@@ -12,7 +12,7 @@ __all__ = ["command"]
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
-                "ada_target", "ada_color", "moment_weight")
+                "ada_target", "ada_color", "moment_weight", "moment_drift_weight")
 
 
 @click.command("train")
@@ -42,6 +42,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
               help="Half-life of the generator EMA (the shipped G) in kimg. [batch * 10 / 32]")
 @click.option("--moment-weight", type=click.FloatRange(min=0),
               help="Pull each fake batch's per-channel mean and std to the data's (not in the paper; may change on --resume). [0]")
+@click.option("--moment-drift-weight", type=click.FloatRange(min=0),
+              help="Pull the running (~100-step) per-channel mean and std of G's batches to the data's (not in the paper; may change on --resume). [0]")
 @click.option("--seed", type=int, help="[0]")
 @click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
@@ -106,7 +108,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # the run length, snapshot cadence, augmentation (on or off, its target, colour), learning rates and EMA
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
-        changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight")
+        changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
+                      "moment_drift_weight")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:

@@ -22,7 +22,7 @@ from .ada import augment
 from .networks import Discriminator, GanSettings, Generator
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
-           "copy_generator", "batch_moments", "data_moments", "moment_loss"]
+           "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,12 @@ class TrainSettings:
     # drifted greyer and bluer (albedo g/b mean +15-30 %) while D won by a wide margin; D does not
     # punish a global tone bias that ADA's colour jitter also produces. 0: off (the paper)
     moment_weight: float = 0.0
+    # not in the paper: weight of the same pull on the *running* moments (``drift_loss``). The batch
+    # term's expected gradient on the mean is only 2 W (E[mean] - target), and at W = 10 it did not stop
+    # the drift; a larger W would also squeeze every batch of 4 toward the target (fewer distinct skin
+    # tones). This term's gradient depends on the running gap only, so it can be large. 0: off
+    moment_drift_weight: float = 0.0
+    moment_drift_beta: float = 0.99  # per-step decay of the running moments (~100 steps, 400 images)
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -64,6 +70,10 @@ class TrainSettings:
             raise ValueError(f"ada_target must be in (0, 1), got {self.ada_target}")
         if not (self.moment_weight >= 0 and math.isfinite(self.moment_weight)):
             raise ValueError(f"moment_weight must be finite and >= 0, got {self.moment_weight}")
+        if not (self.moment_drift_weight >= 0 and math.isfinite(self.moment_drift_weight)):
+            raise ValueError(f"moment_drift_weight must be finite and >= 0, got {self.moment_drift_weight}")
+        if not 0 <= self.moment_drift_beta < 1:
+            raise ValueError(f"moment_drift_beta must be in [0, 1), got {self.moment_drift_beta}")
 
 
 @dataclass
@@ -87,6 +97,9 @@ class TrainState:
     # (2, 7) float32: a data batch's expected per-channel mean and std (``data_moments``), the moment
     # term's target; derived from the data by ``train``, not saved (a resume derives it again)
     moments: torch.Tensor | None = None
+    # (2, 7) float32: running ``batch_moments`` of G's training batches (``drift_loss``); not saved, a
+    # resume starts it again from its first batch
+    running_moments: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -162,6 +175,21 @@ def moment_loss(fake: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (batch_moments(fake) - target.to(fake)).square().sum()
 
 
+def drift_loss(fake: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """sum 2 (running - target) * batch_moments(fake), with ``running`` (2, C) held constant: its
+    gradient is that of |running - target|^2 taken through this batch, so it moves G's moments by
+    the running gap (not by this batch's own deviation, which is mostly the sampling noise of a small
+    batch). Its value is not a distance; ``(running - target).square().sum()`` is."""
+    gap = (running - target).to(fake).detach()
+    return (2 * gap * batch_moments(fake)).sum()
+
+
+def update_running(running: torch.Tensor | None, moments: torch.Tensor, beta: float) -> torch.Tensor:
+    """Exponential moving average of (2, C) moments; the first batch starts it."""
+    moments = moments.detach().float()
+    return moments.clone() if running is None else running.lerp(moments, 1 - beta)
+
+
 def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     t = state.train
     return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
@@ -186,8 +214,16 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         if state.moments is None:
             raise ValueError("train_step: moment_weight > 0 needs state.moments (data_moments of the training data)")
         loss_m = moment_loss(fake, state.moments)
+    loss_drift = torch.zeros(())
+    drift = None
+    if t.moment_drift_weight > 0:
+        if state.moments is None:
+            raise ValueError("train_step: moment_drift_weight > 0 needs state.moments (data_moments of the training data)")
+        state.running_moments = update_running(state.running_moments, batch_moments(fake), t.moment_drift_beta)
+        loss_drift = drift_loss(fake, state.running_moments, state.moments)
+        drift = float((state.running_moments - state.moments).square().sum())
     state.opt_G.zero_grad(set_to_none=True)
-    (loss_g + t.moment_weight * loss_m).backward()
+    (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift).backward()
     state.opt_G.step()
     # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
     G.requires_grad_(False)
@@ -226,10 +262,13 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
             be.copy_(bb)
     state.step += 1
     state.nimg += b
-    return {"loss_g": float(loss_g.detach()), "loss_d": float(loss_d.detach()),
-            "loss_r1": float(loss_r1.detach()) if do_r1 else float("nan"),
-            "real_logit": float(logits_real.detach().mean()), "ada_p": state.ada_p,
-            "loss_moment": float(loss_m.detach())}
+    out = {"loss_g": float(loss_g.detach()), "loss_d": float(loss_d.detach()),
+           "loss_r1": float(loss_r1.detach()) if do_r1 else float("nan"),
+           "real_logit": float(logits_real.detach().mean()), "ada_p": state.ada_p,
+           "loss_moment": float(loss_m.detach())}
+    if drift is not None:
+        out["moment_drift"] = drift  # |running - target|^2, the drift term's distance
+    return out
 
 
 # --- checkpoints ------------------------------------------------------------------------------------
@@ -399,7 +438,7 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
     t, r = state.train, state.gan.resolution
     if data.ndim != 4 or data.shape[1:] != (7, r, r):
         raise ValueError(f"expected data of shape (N, 7, {r}, {r}), got {tuple(data.shape)}")
-    if t.moment_weight > 0 and state.moments is None:
+    if (t.moment_weight > 0 or t.moment_drift_weight > 0) and state.moments is None:
         state.moments = data_moments(data, t.batch, seed=t.seed)
     total = int(t.kimg * 1000)
     snap_every = max(int(t.snapshot_kimg * 1000), t.batch)
