@@ -53,7 +53,8 @@ class TrainSettings:
     # not in the paper: weight of the same pull on the *running* moments (``drift_loss``). The batch
     # term's expected gradient on the mean is only 2 W (E[mean] - target), and at W = 10 it did not stop
     # the drift; a larger W would also squeeze every batch of 4 toward the target (fewer distinct skin
-    # tones). This term's gradient depends on the running gap only, so it can be large. 0: off
+    # tones). This term's gradient depends on the running gap only, so it can be large. Note: the drift
+    # that both terms answered was mostly an evaluation-seed artefact (docs/brdf_gan.md). 0: off
     moment_drift_weight: float = 0.0
     moment_drift_beta: float = 0.99  # per-step decay of the running moments (~100 steps, 400 images)
 
