@@ -310,25 +310,27 @@ def test_moment_term_known_values_gradient_and_target():
         data_moments(data[:4], 8)
 
 
+def _moment_run(data: torch.Tensor, **moment_settings: float):
+    """30 seeded training steps with the given moment-term settings; returns (mean |channel mean - data
+    mean| of 64 fakes, the steps' losses)."""
+    from fitme_cli.reflectance.gan.train import data_moments
+
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, **moment_settings))
+    state.moments = data_moments(data, 8)
+    torch.manual_seed(0)
+    losses = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+              for i in range(30)]
+    with torch.no_grad():
+        fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
+    return (fake.mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean(), losses
+
+
 def test_moment_weight_pulls_the_fakes_toward_the_data_moments():
     """Same seed, same steps: with the moment term G's channel means end closer to the data's; it needs
     the data moments, and a bad weight is refused."""
-    from fitme_cli.reflectance.gan.train import data_moments
-
     data = _tiny_data()
-
-    def run(weight):
-        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, moment_weight=weight))
-        state.moments = data_moments(data, 8)
-        torch.manual_seed(0)
-        losses = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
-                  for i in range(30)]
-        with torch.no_grad():
-            fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
-        return (fake.mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean(), losses
-
-    off, l_off = run(0.0)
-    on, l_on = run(50.0)
+    off, l_off = _moment_run(data, moment_weight=0.0)
+    on, l_on = _moment_run(data, moment_weight=50.0)
     assert on < 0.7 * off, (float(on), float(off))
     assert all(d["loss_moment"] == 0.0 for d in l_off) and l_on[-1]["loss_moment"] < l_on[0]["loss_moment"]
     state = new_state(TINY, TrainSettings(batch=8, kimg=1, moment_weight=1.0))
@@ -365,23 +367,9 @@ def test_drift_term_known_values_gradient_and_running_average():
 
 
 def test_moment_drift_weight_pulls_the_fakes_toward_the_data_means():
-    from fitme_cli.reflectance.gan.train import data_moments
-
     data = _tiny_data()
-
-    def run(weight):
-        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01,
-                                              moment_drift_weight=weight, moment_drift_beta=0.8))
-        state.moments = data_moments(data, 8)
-        torch.manual_seed(0)
-        losses = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
-                  for i in range(30)]
-        with torch.no_grad():
-            fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
-        return (fake.mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean(), losses
-
-    off, l_off = run(0.0)
-    on, l_on = run(50.0)
+    off, l_off = _moment_run(data, moment_drift_weight=0.0, moment_drift_beta=0.8)
+    on, l_on = _moment_run(data, moment_drift_weight=50.0, moment_drift_beta=0.8)
     assert on < 0.7 * off, (float(on), float(off))  # 0.047 against 0.129 measured
     assert "moment_drift" not in l_off[0] and l_on[-1]["moment_drift"] < l_on[0]["moment_drift"]
     state = new_state(TINY, TrainSettings(batch=8, kimg=1, moment_drift_weight=1.0))
