@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from click.testing import CliRunner
 
 from fitme_cli.reflectance.gan import ops
@@ -220,6 +221,37 @@ def test_settings_are_checked():
         TrainSettings(ada_target=1.0)
     with pytest.raises(ValueError, match="learning rates must be > 0"):
         TrainSettings(g_lr=0.0)
+
+
+def _max_cos(a: torch.Tensor, b: torch.Tensor) -> float:
+    """The largest |cosine| between a row of ``a`` and a row of ``b``."""
+    return float((F.normalize(a, dim=1) @ F.normalize(b, dim=1).T).abs().max())
+
+
+def test_evaluation_latents_do_not_lie_on_the_mapping_networks_initial_rows():
+    """new_state draws the mapping's first layer from torch's stream seeded by TrainSettings.seed, so
+    torch.Generator().manual_seed(0) z repeat those rows (cos 1); sample_z's, at the shipped z_dim, stay
+    at chance (|cos| ~ 0.044 each, ~0.25 at most over 2^18 pairs)."""
+    from fitme_cli.reflectance.gan.latents import sample_z
+    from fitme_cli.reflectance.gan.train import GRID_SEED
+
+    wide = dataclasses.replace(TINY, z_dim=512, w_dim=512)
+    rows = new_state(wide, TrainSettings(batch=4, kimg=1, seed=0)).G_ema.mapping.layers[0].weight.detach()
+    assert _max_cos(torch.randn(512, 512, generator=torch.Generator().manual_seed(0)), rows) > 0.999
+    for seed in (0, 1, 3, 7, 11, GRID_SEED):
+        assert _max_cos(sample_z(512, 512, seed), rows) < 0.4, seed
+
+
+def test_sample_z_is_deterministic_distinct_and_checked():
+    from fitme_cli.reflectance.gan.latents import sample_z
+
+    a = sample_z(64, 512, 3)
+    assert a.shape == (64, 512) and a.dtype == torch.float32
+    assert torch.equal(a, sample_z(64, 512, 3)) and torch.equal(a[:8], sample_z(8, 512, 3)[:8])
+    assert abs(float(a.mean())) < 0.02 and abs(float(a.std()) - 1) < 0.02
+    assert _max_cos(sample_z(64, 512, 4), a) < 0.4  # seeds give independent streams
+    with pytest.raises(ValueError, match="n >= 0 and z_dim >= 1, got n=4, z_dim=0"):
+        sample_z(4, 0, 0)
 
 
 def test_set_learning_rates_after_a_resume_change():

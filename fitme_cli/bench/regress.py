@@ -43,6 +43,13 @@ class Tolerance:
 # AVX-512 machine that wrote the previous baseline) to 8.7 here, on the same code. The medians move far
 # less; the tolerances absorb what is left, and what they catch is breakage (a dropped loss term, a wrong
 # sign or learning rate moves these metrics by multiples, or keeps the fit at its start).
+# The identity similarity also moves with the machine in a way nudged starts do not reproduce: the
+# baseline's AVX2 machine gave synthetic_01/02 medians of 0.824/0.732, two AVX-512 machines (CI and a
+# session's, same code, 1 thread) 0.726-0.736/0.625-0.637, while their own 15 nudged members spread
+# only 0.70-0.75/0.59-0.64 (ninth session). Forcing torch, oneDNN, MKL and numba to AVX2 on the AVX-512
+# machine did not bring 0.73 back, so the rest is onnxruntime's kernels (the detector's landmarks and
+# the identity embedding), which no setting here pins. Hence 0.15 for identity: the fits gain 0.17-0.22
+# over their start, so a fit that gains nothing still fails.
 TOLERANCES: dict[str, Tolerance] = {
     "landmark_px": Tolerance(1.5, 0.75, 0.5),
     "shape_mm": Tolerance(0.1, 0.25, 0.5),
@@ -51,7 +58,7 @@ TOLERANCES: dict[str, Tolerance] = {
     "albedo_delta_e": Tolerance(1.0, 0.4, 0.5),
     "albedo_delta_e_gain": Tolerance(0.75, 0.4, 0.5),
     "normals_deg": Tolerance(0.05, 0.25, 0.5),
-    "identity_sim": Tolerance(0.08, 0.0, 0.5),
+    "identity_sim": Tolerance(0.15, 0.0, 0.5),
     "photometric": Tolerance(2.0, 0.3, 0.5),
 }
 

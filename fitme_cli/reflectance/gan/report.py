@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from .data import load_dataset
+from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, feature_parts, frechet_distance, interpolation_smoothness,
                       modality_consistency, reflectance_features, region_albedo, region_labels, std_parts)
 from .networks import GanImages, Generator, decode_maps
@@ -44,11 +45,11 @@ class _Stats:
 
 def _batches(G: Generator, data: torch.Tensor | None, n: int, seed: int, batch: int = 32, truncation_psi: float = 1.0):
     """Physical (b, 7, R, R) batches: generated (data None) or decoded from the data tensor."""
-    g = torch.Generator().manual_seed(seed)
+    z = sample_z(n, G.settings.z_dim, seed) if data is None else None
     with torch.no_grad():
         for i in range(0, n, batch):
             k = min(batch, n - i)
-            imgs = G(torch.randn(k, G.settings.z_dim, generator=g), truncation_psi=truncation_psi, noise_mode="random") if data is None \
+            imgs = G(z[i : i + k], truncation_psi=truncation_psi, noise_mode="random") if data is None \
                 else GanImages.split(data[i : i + k].float())
             m = decode_maps(imgs, G.settings)
             yield torch.cat([m.albedo, m.specular, m.normals], 1)
@@ -120,11 +121,11 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
     tones = {"gan": region_albedo(gan_feats), "data": region_albedo(data_feats)}
     region_tone = {_region_name(lab): {name: [round(float(v), 4) for v in np.quantile(tones[name][:, j], q)]
                                        for name in ("data", "gan")} for j, lab in enumerate(region_labels(regions))}
-    g = torch.Generator().manual_seed(seed + 1)
+    ends = sample_z(16, G.settings.z_dim, seed + 1)
     ratios = []
     with torch.no_grad():
-        for _ in range(8):
-            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g), truncation_psi)
+        for i in range(8):
+            w = G.ws(ends[2 * i : 2 * i + 2], truncation_psi)
             t = torch.linspace(0, 1, 16).view(-1, 1, 1)
             walk = G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const").cat()
             ratios.append(interpolation_smoothness(walk))
@@ -158,7 +159,7 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: flo
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
-    z = torch.randn(16, G.settings.z_dim, generator=torch.Generator().manual_seed(7))
+    z = sample_z(16, G.settings.z_dim, 7)
     grid = sample_grid(G, z, truncation_psi)
     r = G.settings.resolution
     two = np.concatenate([grid[: 8 * r], grid[8 * r :]], 1)  # 8 rows x 2 columns of triplets
@@ -178,10 +179,10 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: flo
     from ...ops.srgb import linear_to_srgb
 
     rows = []
-    g = torch.Generator().manual_seed(3)
+    ends = sample_z(8, G.settings.z_dim, 3)
     with torch.no_grad():
-        for _ in range(4):
-            w = G.ws(torch.randn(2, G.settings.z_dim, generator=g), truncation_psi)
+        for i in range(4):
+            w = G.ws(ends[2 * i : 2 * i + 2], truncation_psi)
             t = torch.linspace(0, 1, 8).view(-1, 1, 1)
             m = decode_maps(G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const"), G.settings)
             alb = linear_to_srgb(m.albedo)
@@ -204,7 +205,7 @@ def closeup(G: Generator, data: torch.Tensor, truncation_psi: float = 1.0, n: in
 
     r = G.settings.resolution
     face = slice(r // 4, 3 * r // 4)
-    z = torch.randn(n, G.settings.z_dim, generator=torch.Generator().manual_seed(11))
+    z = sample_z(n, G.settings.z_dim, 11)
     with torch.no_grad():
         sources = [GanImages.split(data[:n].float())]
         sources += [G(z, truncation_psi=psi, noise_mode="const") for psi in dict.fromkeys((truncation_psi, 1.0))]

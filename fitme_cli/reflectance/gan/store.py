@@ -53,10 +53,15 @@ def load_generator(models_dir: Path, device: str | torch.device = "cpu") -> Gene
     return G.to(device).eval().requires_grad_(False)
 
 
+# 2: z from latents.sample_z (version 1 drew torch seed 0's stream, whose first vectors are the mapping's
+# initial first-layer rows: outlier w)
+_PRIOR_VERSION = 2
+
+
 def load_w_prior(models_dir: Path, G: Generator):
     """The P-space W prior of the shipped generator (``latent_prior.fit_w_prior``), cached beside the
     weights as ``brdf_gan.wprior.safetensors`` (derived data, git-ignored): 0.8 s to fit, 5 ms to load.
-    The cache records the weights' size and mtime and is refitted when they change."""
+    The cache records the weights' size and mtime and ``_PRIOR_VERSION``, and is refitted when they change."""
     from safetensors import SafetensorError
     from safetensors.torch import load_file, save_file
 
@@ -65,7 +70,7 @@ def load_w_prior(models_dir: Path, G: Generator):
     weights = Path(models_dir) / f"{MODEL_NAME}.safetensors"
     cache = Path(models_dir) / f"{MODEL_NAME}.wprior.safetensors"
     st = weights.stat()
-    stamp = torch.tensor([st.st_size, st.st_mtime_ns], dtype=torch.int64)
+    stamp = torch.tensor([st.st_size, st.st_mtime_ns, _PRIOR_VERSION], dtype=torch.int64)
     try:
         t = load_file(str(cache))
         if torch.equal(t["stamp"], stamp):
