@@ -211,16 +211,15 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     z = torch.randn(b, state.gan.z_dim)
     fake = G.synthesis(_ws(state, z)).cat()
     loss_g = F.softplus(-_d(state, fake)).mean()
+    if (t.moment_weight > 0 or t.moment_drift_weight > 0) and state.moments is None:
+        raise ValueError(f"train_step: moment_weight {t.moment_weight} / moment_drift_weight {t.moment_drift_weight} "
+                         "needs state.moments (data_moments of the training data)")
     loss_m = torch.zeros(())
     if t.moment_weight > 0:
-        if state.moments is None:
-            raise ValueError("train_step: moment_weight > 0 needs state.moments (data_moments of the training data)")
         loss_m = moment_loss(fake, state.moments)
     loss_drift = torch.zeros(())
     drift = None
     if t.moment_drift_weight > 0:
-        if state.moments is None:
-            raise ValueError("train_step: moment_drift_weight > 0 needs state.moments (data_moments of the training data)")
         state.running_moments = update_running(state.running_moments, batch_moments(fake), t.moment_drift_beta)
         loss_drift = drift_loss(fake, state.running_moments, state.moments)
         drift = float((state.running_moments - state.moments).square().sum())
