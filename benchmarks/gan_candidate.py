@@ -36,7 +36,9 @@ def card_rows(card: dict) -> dict[str, str]:
     m = card["metrics"]
     pc = m["per_channel"]
     fr = m["frechet_reflectance_features"]
-    psi1 = card.get("metrics_truncation_psi_1", {}).get("frechet_reflectance_features", {})
+    psi = card["sampling"]["truncation_psi"]
+    # a card sampled at psi 1 has one set of metrics; one sampled below keeps the psi 1 set beside it
+    psi1 = fr if psi == 1 else card.get("metrics_truncation_psi_1", {}).get("frechet_reflectance_features", {})
     mod = m["modality_consistency"]
     interp = m["interpolation_max_over_mean_step"]
     albedo = [c for c in pc if c.startswith("albedo_")]  # the card's channel names, in its order
@@ -49,9 +51,11 @@ def card_rows(card: dict) -> dict[str, str]:
         "specular mean / std %": f"{_signed(pc['specular'], 'mean')} / {_signed(pc['specular'], 'std')}",
         "normals x/y/z std %": " / ".join(_signed(pc[c], "std") for c in normals),
         "albedo r/g/b fine-grain std, × data": " / ".join(f"{scale[c]['fine']:.2f}" for c in albedo) if scale else "–",
-        f"Fréchet (tone, detail) at ψ {card['sampling']['truncation_psi']:g}; half vs half {fr['half_vs_half']:.3f}":
+        # keys must not depend on the card: two cards at different psi share one table
+        "sampling ψ": f"{psi:g}",
+        "Fréchet at the card's ψ (tone, detail); half vs half":
             f"{fr['gan_vs_heldout_half']:.3f} ({fr['by_part']['tone']['gan_vs_heldout_half']:.3f}, "
-            f"{fr['by_part']['detail']['gan_vs_heldout_half']:.3f})",
+            f"{fr['by_part']['detail']['gan_vs_heldout_half']:.3f}); {fr['half_vs_half']:.3f}",
         "Fréchet at ψ 1": f"{psi1['gan_vs_heldout_half']:.3f}" if psi1 else "–",
         f"modality link (data {mod['data_matched']:.3f})": f"{mod['gan_matched']:+.3f}",
         "interpolation median (max)": f"{interp['median']:.2f} ({interp['max']:.2f})",
@@ -133,6 +137,7 @@ def main() -> None:
         fits = {"shipped": _fit_photos(shipped, presets, args.threads, args.members),
                 "candidate": _fit_photos(_models_with(cand, shipped, Path(tmp) / "models"), presets, args.threads,
                                          args.members)}
+    print(json.dumps(fits), file=sys.stderr)  # minutes of fits: keep them even if the table fails
     rows = {k: card_rows(c) for k, c in cards.items()}
     for p in presets:
         for k in fits:
@@ -142,8 +147,8 @@ def main() -> None:
             rows[k][f"{p} preset{med}: {' / '.join(sims)}, mean"] = (" / ".join(f"{v:.2f}" for v in vals)
                                                                + f", **{sum(vals) / len(vals):.3f}**")
     print("| | shipped | candidate |\n|---|---|---|")
-    for key in rows["shipped"]:
-        print(f"| {key} | {rows['shipped'][key]} | {rows['candidate'][key]} |")
+    for key in dict.fromkeys([*rows["shipped"], *rows["candidate"]]):
+        print(f"| {key} | {rows['shipped'].get(key, '–')} | {rows['candidate'].get(key, '–')} |")
 
 
 if __name__ == "__main__":

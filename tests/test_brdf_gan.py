@@ -497,6 +497,13 @@ def test_train_loop_snapshots(tmp_path):
         train(state, data[:, :6], tmp_path, progress=False)
 
 
+def test_train_stops_between_steps_when_asked(tmp_path):
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1.0, snapshot_kimg=1.0))
+    asked = []
+    train(state, _tiny_data(), tmp_path, progress=False, stop=lambda: asked.append(state.nimg) or len(asked) > 3)
+    assert state.nimg == 12 and state.step == 3 and asked == [0, 4, 8, 12]
+
+
 # --- data and the command line --------------------------------------------------------------------------
 
 
@@ -576,6 +583,34 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 10 and "not found" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "y"), "--resolution", "100"])
     assert r.exit_code == 2 and "power of two" in r.output
+
+
+def test_sigterm_ends_training_after_a_step_and_saves_a_checkpoint(dataset_dir, tmp_path):
+    """A background job ignores Ctrl-C, so `kill` (SIGTERM) is how a long run is stopped: it must end at a
+    step boundary and keep the work, not die with the last snapshot's."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "fitme_cli", "train", str(dataset_dir), "-o", str(run),
+                             "--resolution", "16", "--branch-resolution", "8", "--channel-base", "64",
+                             "--channel-max", "16", "--kimg", "100", "--snapshot-kimg", "50", "--threads", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stderr:  # the line printed just before the first step
+            if "parameters" in line:
+                break
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert "stopped by SIGTERM: checkpoint saved" in err
+    state = load_checkpoint(run / "checkpoint.safetensors")  # no snapshot was due: this is the stop's
+    assert 0 < state.nimg < 50_000 and state.nimg == 4 * state.step
 
 
 def test_shipped_generator_round_trip(tmp_path):

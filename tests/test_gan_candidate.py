@@ -39,8 +39,14 @@ def test_card_rows_sign_the_differences_to_the_data(gc):
     assert rows["kimg"] == "107"
     assert rows["albedo r/g/b mean %"] == "+10 / +0 / +0"
     assert rows["normals x/y/z std %"] == "+0 / +0 / -20"
-    assert rows["Fréchet (tone, detail) at ψ 0.5; half vs half 0.002"] == "0.055 (0.030, 0.020)"
-    assert rows["Fréchet at ψ 1"] == "–"  # a card sampled at ψ = 1 has no second set
+    assert rows["sampling ψ"] == "0.5"
+    assert rows["Fréchet at the card's ψ (tone, detail); half vs half"] == "0.055 (0.030, 0.020); 0.002"
+    assert rows["Fréchet at ψ 1"] == "–"  # this ψ 0.5 card kept no ψ 1 set
+    psi1 = _card(frechet=0.028)
+    psi1["sampling"]["truncation_psi"] = 1.0
+    rows1 = gc.card_rows(psi1)
+    assert rows1.keys() == rows.keys()  # cards at different ψ share one table
+    assert rows1["Fréchet at ψ 1"] == "0.028" and rows1["sampling ψ"] == "1"
     assert rows["modality link (data 0.376)"] == "-0.060"
     assert rows["interpolation median (max)"] == "1.17 (1.43)"
     assert rows["albedo r/g/b fine-grain std, × data"] == "–"  # an older card without the std by scale
@@ -52,7 +58,7 @@ def test_card_rows_sign_the_differences_to_the_data(gc):
 
 def test_the_shipped_card_has_every_row(gc):
     rows = gc.card_rows(json.loads((REPO / "models" / "brdf_gan.json").read_text()))
-    assert len(rows) == 10 and all(v and v != "nan" and v != "–" for v in rows.values())
+    assert len(rows) == 11 and all(v and v != "nan" and v != "–" for v in rows.values())
 
 
 def test_models_folder_takes_the_gan_from_the_candidate_and_the_rest_from_the_shipped(gc, tmp_path):

@@ -2,12 +2,41 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
+import threading
 from pathlib import Path
 
 import click
 
 __all__ = ["command"]
+
+@contextlib.contextmanager
+def _stop_requests():
+    """Collect SIGTERM (``kill``'s default; a background job ignores Ctrl-C) and a first Ctrl-C into the
+    yielded list instead of stopping mid-step: training ends after the current step, so the checkpoint
+    saved then resumes exactly. A second Ctrl-C interrupts at once. Only the main thread can own signals."""
+    got: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield got
+        return
+
+    def request(signum, frame):
+        if signum == signal.SIGINT and got:
+            raise KeyboardInterrupt
+        got.append(signum)
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    signal.signal(signal.SIGTERM, request)
+    if previous[signal.SIGINT] is signal.default_int_handler:  # left alone where the shell ignores it
+        signal.signal(signal.SIGINT, request)
+    try:
+        yield got
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
 
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
@@ -52,7 +81,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
 
     Every --snapshot-kimg it writes RUN_DIR/samples/kimgNNNN.NN.png (8 rows of A_D | A_S | N_S for fixed
     latents), appends to RUN_DIR/metrics.jsonl and saves RUN_DIR/checkpoint.safetensors, from which
-    --resume continues exactly. Ctrl-C saves a checkpoint first.
+    --resume continues exactly. Ctrl-C or SIGTERM (kill) ends the current step and saves a checkpoint;
+    a second Ctrl-C stops at once.
 
     \b
     Example:
@@ -166,10 +196,17 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         click.echo("the checkpoint's mean image was trained (before it became fixed): reset to the data mean", err=True)
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
                f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
-    try:
-        train(state, data, run_dir)
-    except KeyboardInterrupt:
+    with _stop_requests() as stops:
+        try:
+            train(state, data, run_dir, stop=lambda: bool(stops))
+        except KeyboardInterrupt:
+            save_checkpoint(state, ckpt)
+            click.echo(f"interrupted mid-step: checkpoint saved at {state.nimg / 1000:.2f} kimg", err=True)
+            raise
+    if stops:
         save_checkpoint(state, ckpt)
-        click.echo(f"interrupted: checkpoint saved at {state.nimg / 1000:.2f} kimg", err=True)
-        raise
+        name = signal.Signals(stops[0]).name
+        click.echo(f"stopped by {name}: checkpoint saved at {state.nimg / 1000:.2f} kimg; --resume continues exactly",
+                   err=True)
+        raise SystemExit(128 + stops[0])
     click.echo(f"done: {state.nimg / 1000:.2f} kimg in {state.wall_time / 3600:.2f} h of training; {ckpt}")

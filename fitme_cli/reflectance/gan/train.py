@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -428,9 +429,10 @@ def snapshot(state: TrainState, run_dir: Path, data: torch.Tensor, losses: list[
 
 
 def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool = True,
-          max_steps: int | None = None) -> TrainState:
-    """Train until ``state.train.kimg`` (or ``max_steps`` more steps), snapshotting into ``run_dir``.
-    ``data``: (N, 7, R, R) network space at the generator's resolution."""
+          max_steps: int | None = None, stop: Callable[[], bool] | None = None) -> TrainState:
+    """Train until ``state.train.kimg`` (or ``max_steps`` more steps, or ``stop()`` is true), snapshotting
+    into ``run_dir``. ``data``: (N, 7, R, R) network space at the generator's resolution. ``stop`` is
+    asked between steps, so a checkpoint saved after it ends resumes exactly."""
     import sys
     import time
 
@@ -450,7 +452,7 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
     steps = 0
     window_t, window_n = time.perf_counter(), state.nimg
     rate = 0.0
-    while state.nimg < total and (max_steps is None or steps < max_steps):
+    while state.nimg < total and (max_steps is None or steps < max_steps) and not (stop is not None and stop()):
         idx = torch.randint(0, len(data), (t.batch,))
         reals = data[idx].float()
         t0 = time.perf_counter()
