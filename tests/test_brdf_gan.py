@@ -585,9 +585,11 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 2 and "power of two" in r.output
 
 
-def test_sigterm_ends_training_after_a_step_and_saves_a_checkpoint(dataset_dir, tmp_path):
-    """A background job ignores Ctrl-C, so `kill` (SIGTERM) is how a long run is stopped: it must end at a
-    step boundary and keep the work, not die with the last snapshot's."""
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_stop_signal_ends_training_after_a_step_and_saves_a_checkpoint(dataset_dir, tmp_path, sig):
+    """A background job ignores Ctrl-C, so `kill` (SIGTERM) is how a long run is stopped; a first Ctrl-C
+    (SIGINT) does the same. Either must end at a step boundary and keep the work, not die with the last
+    snapshot's."""
     import signal
     import subprocess
     import sys
@@ -603,12 +605,12 @@ def test_sigterm_ends_training_after_a_step_and_saves_a_checkpoint(dataset_dir, 
             if "parameters" in line:
                 break
         time.sleep(2.0)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(getattr(signal, sig))
         _, err = proc.communicate(timeout=120)
     finally:
         proc.kill()
-    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
-    assert "stopped by SIGTERM: checkpoint saved" in err
+    assert proc.returncode == 128 + getattr(signal, sig), err[-2000:]
+    assert f"stopped by {sig}: checkpoint saved" in err
     state = load_checkpoint(run / "checkpoint.safetensors")  # no snapshot was due: this is the stop's
     assert 0 < state.nimg < 50_000 and state.nimg == 4 * state.step
 

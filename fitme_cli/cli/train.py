@@ -12,6 +12,7 @@ import click
 
 __all__ = ["command"]
 
+
 @contextlib.contextmanager
 def _stop_requests():
     """Collect SIGTERM (``kill``'s default; a background job ignores Ctrl-C) and a first Ctrl-C into the
@@ -201,7 +202,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             train(state, data, run_dir, stop=lambda: bool(stops))
         except KeyboardInterrupt:
             save_checkpoint(state, ckpt)
-            click.echo(f"interrupted mid-step: checkpoint saved at {state.nimg / 1000:.2f} kimg", err=True)
+            click.echo(f"interrupted mid-step: checkpoint saved at {state.nimg / 1000:.2f} kimg (a resume from it is not "
+                       "bit-exact)", err=True)
             raise
     if stops:
         save_checkpoint(state, ckpt)
