@@ -71,7 +71,9 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--ema-kimg", type=click.FloatRange(min=0, min_open=True),
               help="Half-life of the generator EMA (the shipped G) in kimg. [batch * 10 / 32]")
 @click.option("--moment-weight", type=click.FloatRange(min=0),
-              help="Pull each fake batch's per-channel mean and std to the data's (not in the paper; may change on --resume). [0]")
+              help="Pull each fake batch's per-channel mean and std to the data's (not in the paper; it also squeezes the "
+                   "spread between samples: 10 took it to 0.7 of the data's in 8 kimg, docs/brdf_gan.md; may change on "
+                   "--resume). [0]")
 @click.option("--moment-drift-weight", type=click.FloatRange(min=0),
               help="Pull the running (~100-step) per-channel mean and std of G's batches to the data's (not in the paper; may change on --resume). [0]")
 @click.option("--seed", type=int, help="[0]")
