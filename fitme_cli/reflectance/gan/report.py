@@ -96,6 +96,15 @@ def evaluate_psis(G: Generator, data: torch.Tensor, regions: torch.Tensor, trunc
             for psi in truncation_psis]
 
 
+def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
+    """n straight walks in W between pairs of sample_z(2n, seed) ends: (steps, num_ws, w_dim) each."""
+    ends = sample_z(2 * n, G.settings.z_dim, seed)
+    t = torch.linspace(0, 1, steps).view(-1, 1, 1)
+    for i in range(n):
+        w = G.ws(ends[2 * i : 2 * i + 2], truncation_psi)
+        yield w[:1] + t * (w[1:] - w[:1])
+
+
 def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncation_psi: float) -> dict:
     (gan_stats, gan_feats, gan_cons, gan_parts), (data_stats, data_feats, data_cons, data_parts) = gan, real
     half = len(data_feats) // 2
@@ -121,14 +130,9 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
     tones = {"gan": region_albedo(gan_feats), "data": region_albedo(data_feats)}
     region_tone = {_region_name(lab): {name: [round(float(v), 4) for v in np.quantile(tones[name][:, j], q)]
                                        for name in ("data", "gan")} for j, lab in enumerate(region_labels(regions))}
-    ends = sample_z(16, G.settings.z_dim, seed + 1)
-    ratios = []
     with torch.no_grad():
-        for i in range(8):
-            w = G.ws(ends[2 * i : 2 * i + 2], truncation_psi)
-            t = torch.linspace(0, 1, 16).view(-1, 1, 1)
-            walk = G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const").cat()
-            ratios.append(interpolation_smoothness(walk))
+        ratios = [interpolation_smoothness(G.synthesis(w, noise_mode="const").cat())
+                  for w in _walks(G, 8, 16, seed + 1, truncation_psi)]
     return {
         "per_channel": per_channel,
         "std_ratio_by_scale": by_scale,
@@ -179,12 +183,9 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: flo
     from ...ops.srgb import linear_to_srgb
 
     rows = []
-    ends = sample_z(8, G.settings.z_dim, 3)
     with torch.no_grad():
-        for i in range(4):
-            w = G.ws(ends[2 * i : 2 * i + 2], truncation_psi)
-            t = torch.linspace(0, 1, 8).view(-1, 1, 1)
-            m = decode_maps(G.synthesis(w[:1] + t * (w[1:] - w[:1]), noise_mode="const"), G.settings)
+        for w in _walks(G, 4, 8, 3, truncation_psi):
+            m = decode_maps(G.synthesis(w, noise_mode="const"), G.settings)
             alb = linear_to_srgb(m.albedo)
             nrm = (m.normals * 2.5 + 0.5).clamp(0, 1)
             crop = slice(r // 4, 3 * r // 4)  # the face
