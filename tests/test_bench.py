@@ -185,10 +185,16 @@ def test_baseline_round_trip_and_checks(tmp_path):
         read_baseline(p, s)
 
 
+def _regress_cases() -> set[str]:
+    s = RegressSettings()
+    return {*s.sample_photos, *(f"synthetic_{seed:02d}" for seed in s.synthetic_seeds)}
+
+
 def test_committed_baseline_matches_the_regress_settings():
     doc = read_baseline(BASELINE, RegressSettings())
-    assert set(doc["subjects"]) == {"astronaut", "synthetic_01", "synthetic_02"} == set(doc["start"])
-    assert all(math.isfinite(v) for v in doc["subjects"]["synthetic_01"].values())
+    assert set(doc["subjects"]) == _regress_cases() == set(doc["start"]) and len(_regress_cases()) == 3
+    synthetic = f"synthetic_{RegressSettings().synthetic_seeds[0]:02d}"
+    assert all(math.isfinite(v) for v in doc["subjects"][synthetic].values())
 
 
 def test_committed_baseline_fails_a_fit_that_stays_at_its_start():
@@ -196,7 +202,7 @@ def test_committed_baseline_fails_a_fit_that_stays_at_its_start():
     doc = read_baseline(BASELINE, RegressSettings())
     regs = compare(doc["start"], doc)
     assert len(regs) >= 5, [str(r) for r in regs]
-    assert {r.subject for r in regs} == {"astronaut", "synthetic_01", "synthetic_02"}
+    assert {r.subject for r in regs} == _regress_cases()
 
 
 # --- the real run ------------------------------------------------------------------------------------
@@ -212,13 +218,14 @@ def test_cli_regress_run_passes_against_the_committed_baseline_and_fails_on_a_be
 
     r = CliRunner().invoke(main, ["bench", "-o", str(tmp_path / "out"), "--regress", str(BASELINE), "--threads", "1"])
     assert r.exit_code == 0, r.output
-    assert "every metric within tolerance" in r.output and "synthetic_02: landmark_px" in r.output
+    last = f"synthetic_{RegressSettings().synthetic_seeds[-1]:02d}"
+    assert "every metric within tolerance" in r.output and f"{last}: landmark_px" in r.output
     current = json.loads((tmp_path / "out" / "regress.json").read_text())
     doc = read_baseline(BASELINE, RegressSettings())
-    lm = current["synthetic_02"]["landmark_px"]
-    doc["subjects"]["synthetic_02"]["landmark_px"] = min(lm / 4, lm - 2.0)
+    lm = current[last]["landmark_px"]
+    doc["subjects"][last]["landmark_px"] = min(lm / 4, lm - 2.0)
     regs = compare(current, doc)
-    assert [(x.subject, x.metric) for x in regs] == [("synthetic_02", "landmark_px")]
+    assert [(x.subject, x.metric) for x in regs] == [(last, "landmark_px")]
 
 
 def test_cli_rejects_update_baseline_without_regress(tmp_path):

@@ -68,7 +68,9 @@ class RegressSettings:
     """The regression budget: the fast preset cut to ``iterations``, ``members`` fits per case (medians)."""
 
     iterations: int = 15
-    synthetic_seeds: tuple[int, ...] = (1, 2)
+    # beardless subjects the detector finds under the shipped G (125 kimg wide): its seed 1 is not found and
+    # seed 2 is bearded, which the skin mask hides from the fit (docs/fitting.md); new weights, new subjects
+    synthetic_seeds: tuple[int, ...] = (3, 4)
     sample_photos: tuple[str, ...] = ("astronaut",)
     synthetic_size: int = 512
     members: int = 5
