@@ -187,13 +187,18 @@ def test_baseline_round_trip_and_checks(tmp_path):
 
 def _regress_cases() -> set[str]:
     s = RegressSettings()
-    return {*s.sample_photos, *(f"synthetic_{seed:02d}" for seed in s.synthetic_seeds)}
+    return {*s.sample_photos, *s.synthetic_cases()}
+
+
+def test_synthetic_case_names_follow_the_seeds():
+    assert RegressSettings(synthetic_seeds=(1, 12)).synthetic_cases() == ("synthetic_01", "synthetic_12")
+    assert RegressSettings(synthetic_seeds=()).synthetic_cases() == ()
 
 
 def test_committed_baseline_matches_the_regress_settings():
     doc = read_baseline(BASELINE, RegressSettings())
     assert set(doc["subjects"]) == _regress_cases() == set(doc["start"]) and len(_regress_cases()) == 3
-    synthetic = f"synthetic_{RegressSettings().synthetic_seeds[0]:02d}"
+    synthetic = RegressSettings().synthetic_cases()[0]
     assert all(math.isfinite(v) for v in doc["subjects"][synthetic].values())
 
 
@@ -218,7 +223,7 @@ def test_cli_regress_run_passes_against_the_committed_baseline_and_fails_on_a_be
 
     r = CliRunner().invoke(main, ["bench", "-o", str(tmp_path / "out"), "--regress", str(BASELINE), "--threads", "1"])
     assert r.exit_code == 0, r.output
-    last = f"synthetic_{RegressSettings().synthetic_seeds[-1]:02d}"
+    last = RegressSettings().synthetic_cases()[-1]
     assert "every metric within tolerance" in r.output and f"{last}: landmark_px" in r.output
     current = json.loads((tmp_path / "out" / "regress.json").read_text())
     doc = read_baseline(BASELINE, RegressSettings())

@@ -85,6 +85,10 @@ class RegressSettings:
     def fit_settings(self) -> FitSettings:
         return FitSettings.from_preset("fast", iterations=self.iterations)
 
+    def synthetic_cases(self) -> tuple[str, ...]:
+        """The synthetic subjects' case names (``run_regress``'s and the baseline's keys), in seed order."""
+        return tuple(f"synthetic_{seed:02d}" for seed in self.synthetic_seeds)
+
     def as_json(self) -> dict:
         # through JSON, so tuples compare equal to the lists a baseline file reads back as
         return json.loads(json.dumps({"fit": asdict(self.fit_settings()), "synthetic_seeds": list(self.synthetic_seeds),
@@ -127,10 +131,10 @@ def run_regress(s: RegressSettings = RegressSettings(), models=None, log=lambda 
     for name in s.sample_photos:
         img = sample_photo(name)
         cases.append((name, [img.rgb], img.focal_length_35mm, None))
-    for seed in s.synthetic_seeds:
+    for name, seed in zip(s.synthetic_cases(), s.synthetic_seeds):
         subj = make_subject(models.G, models.shape_model, models.renderer,
                             SyntheticSettings(size=s.synthetic_size, n_views=1, seed=seed))
-        cases.append((f"synthetic_{seed:02d}", list(subj.photos), subj.settings.focal_35mm, subj))
+        cases.append((name, list(subj.photos), subj.settings.focal_35mm, subj))
     out: dict[str, dict[str, float]] = {}
     for name, photos, focal, truth in cases:
         t = time.perf_counter()
