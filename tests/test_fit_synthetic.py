@@ -13,7 +13,7 @@ import torch
 from fitme_cli.fitting.metrics import (albedo_error, face_uv_mask, face_vertex_mask, fit_landmarks_px, landmark_error_px,
                                        linear_rgb_to_lab, normal_angular_error_deg, point_to_mesh_distance,
                                        rigid_alignment, shape_error_mm)
-from fitme_cli.fitting.synthetic import SyntheticSettings, make_subject, view_yaws
+from fitme_cli.fitting.synthetic import SyntheticSettings, make_subject, off_tone_fraction, view_yaws
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -223,13 +223,46 @@ def test_view_yaws_and_settings_checks(models):
     np.testing.assert_array_equal(view_yaws(2, 30), [0, 30])
     np.testing.assert_array_equal(view_yaws(5, 30), [0, 15, -15, 30, -30])
     for bad in ({"n_views": 0}, {"size": 10}, {"background": "checker"}, {"jpeg_quality": 0}, {"truncation": 1.5},
-                {"ambient_range": (0.5, 0.2)}, {"noise_sigma": -1.0}):
+                {"ambient_range": (0.5, 0.2)}, {"noise_sigma": -1.0}, {"max_off_tone": 0.0}, {"max_redraws": -1}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SyntheticSettings(**bad)
     with pytest.raises(ValueError, match="SyntheticSettings"):
         make_subject(G, sm, r, settings={"seed": 1})
     with pytest.raises(ValueError, match="ShapeModel"):
         make_subject(G, object(), r)
+
+
+def test_off_tone_fraction_known_values(models):
+    from fitme_cli.shape.regions import region_masks
+
+    sm = models[1]
+    res = 64
+    skin = region_masks(sm.region_uv.numpy().astype(np.uint8), res)["skin"]
+    albedo = torch.tensor([0.40, 0.25, 0.18]).view(1, 3, 1, 1).repeat(1, 1, res, res)
+    assert off_tone_fraction(albedo, sm.region_uv) == 0.0
+    # a dark grey "beard" on every other row of the skin region: exactly those texels are off-tone
+    beard = skin & (np.arange(res)[:, None] % 2 == 0)
+    albedo[0, :, torch.from_numpy(beard)] = 0.03
+    assert off_tone_fraction(albedo, sm.region_uv) == pytest.approx(beard.sum() / skin.sum())
+    with pytest.raises(ValueError, match=r"\(1, 3, R, R\), got \(3, 64, 64\)"):
+        off_tone_fraction(albedo[0], sm.region_uv)
+
+
+def test_subject_redraws_only_an_off_tone_z(models):
+    G, sm, _, r, _ = models
+    s = SyntheticSettings(size=64, seed=0, max_off_tone=1.0)
+    first = make_subject(G, sm, r, s)
+    assert first.z_redraws == 0
+    strict = make_subject(G, sm, r, replace(s, max_off_tone=1e-9, max_redraws=3))
+    default = make_subject(G, sm, r, replace(s, max_off_tone=0.15))
+    for sub in (first, strict, default):
+        assert sub.off_tone == pytest.approx(off_tone_fraction(sub.maps.albedo, sm.region_uv))
+        # a redraw changes the reflectance only: identity, expressions, cameras and lights stay the seed's
+        assert torch.equal(sub.p_s, first.p_s) and torch.equal(sub.p_e, first.p_e)
+        assert torch.equal(sub.cameras.rotation, first.cameras.rotation) and torch.equal(sub.lights.colour, first.lights.colour)
+        assert torch.equal(sub.z, first.z) == (sub.z_redraws == 0)
+    assert 0 <= strict.z_redraws <= 3 and strict.off_tone <= first.off_tone
+    assert default.off_tone <= 0.15 or default.z_redraws == 20
 
 
 # --- fit recovery ------------------------------------------------------------------------------------

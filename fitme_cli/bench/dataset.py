@@ -78,6 +78,7 @@ def _save_subject(d: Path, subject) -> None:
     save_file({k: v.detach().float().contiguous() for k, v in t.items() if v is not None}, str(d / "truth.safetensors"))
     meta = {"synthetic_settings": asdict(subject.settings), "yaws_deg": subject.yaws_deg.tolist(),
             "effects": subject.effects.on(), "n_views": subject.n_views,
+            "z_redraws": subject.z_redraws, "off_tone": round(subject.off_tone, 4),
             "tensors": {"p_s": "(1, K) identity, raw shape-model units", "p_e": "(V, E) expression per view",
                         "albedo/specular/normals": "(1, C, R, R) linear maps", "vertices": "(V, N, 3) posed mesh, world mm",
                         "neutral": "(N, 3) identity without expression", "landmarks": "(V, 468, 2) photo px",

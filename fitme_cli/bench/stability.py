@@ -131,7 +131,9 @@ def make_cases(models, s: StabilitySettings = StabilitySettings()) -> dict[str, 
     from ..fitting.synthetic import SyntheticSettings, make_subject
 
     rng = np.random.default_rng(s.seed)
-    base_s = SyntheticSettings(size=s.size, n_views=1, seed=s.seed, background="noise")
+    # max_off_tone 1: seed 0's z is kept although bearded (a beard is one more hard case here, and the
+    # suite's figures in docs/benchmarks.md are this subject's)
+    base_s = SyntheticSettings(size=s.size, n_views=1, seed=s.seed, background="noise", max_off_tone=1.0)
     base = make_subject(models.G, models.shape_model, models.renderer, base_s)
     f = base_s.focal_35mm
     photo = base.photos[0]
@@ -141,7 +143,8 @@ def make_cases(models, s: StabilitySettings = StabilitySettings()) -> dict[str, 
         out["reference"] = (photo, f)
     if want & {"yaw +80", "yaw -80"}:
         turned = make_subject(models.G, models.shape_model, models.renderer,
-                              SyntheticSettings(size=s.size, n_views=3, yaw_range_deg=80, seed=s.seed, background="noise"))
+                              SyntheticSettings(size=s.size, n_views=3, yaw_range_deg=80, seed=s.seed, background="noise",
+                                                max_off_tone=1.0))
         out["yaw +80"], out["yaw -80"] = (turned.photos[1], f), (turned.photos[2], f)
     if "side light" in want:
         out["side light"] = (_side_light(base, models, rng), f)
