@@ -252,7 +252,8 @@ def off_tone_fraction(albedo: torch.Tensor, region_uv: torch.Tensor) -> float:
     """Fraction of the face's "skin" region (cheeks, chin, upper lip, jaw: not forehead, brows, eyes, nose,
     lips) whose albedo is off the forehead's skin tone: augmentation's mask M (``reflectance.augment``)
     below 0.5. ``albedo``: (1, 3, R, R) linear [0, 1], UV layout; ``region_uv``: the shape model's (S, S)
-    label map. Beards and heavy stubble score 0.2-0.5, clean skin <= 0.1."""
+    label map. Measured on 96 draws of the 125 kimg G: beards and heavy stubble 0.17-0.54, clean skin
+    (redness and freckles included) 0-0.15."""
     if albedo.ndim != 4 or albedo.shape[:2] != (1, 3) or albedo.shape[2] != albedo.shape[3]:
         raise ValueError(f"albedo must be (1, 3, R, R), got {tuple(albedo.shape)}")
     from ..reflectance.augment import skin_mask
