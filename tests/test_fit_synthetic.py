@@ -254,7 +254,7 @@ def test_subject_redraws_only_an_off_tone_z(models):
     first = make_subject(G, sm, r, s)
     assert first.z_redraws == 0
     strict = make_subject(G, sm, r, replace(s, max_off_tone=1e-9, max_redraws=3))
-    default = make_subject(G, sm, r, replace(s, max_off_tone=0.15))
+    default = make_subject(G, sm, r, SyntheticSettings(size=64, seed=0))
     for sub in (first, strict, default):
         assert sub.off_tone == pytest.approx(off_tone_fraction(sub.maps.albedo, sm.region_uv))
         # a redraw changes the reflectance only: identity, expressions, cameras and lights stay the seed's
@@ -262,7 +262,7 @@ def test_subject_redraws_only_an_off_tone_z(models):
         assert torch.equal(sub.cameras.rotation, first.cameras.rotation) and torch.equal(sub.lights.colour, first.lights.colour)
         assert torch.equal(sub.z, first.z) == (sub.z_redraws == 0)
     assert 0 <= strict.z_redraws <= 3 and strict.off_tone <= first.off_tone
-    assert default.off_tone <= 0.15 or default.z_redraws == 20
+    assert default.off_tone <= default.settings.max_off_tone or default.z_redraws == default.settings.max_redraws
 
 
 # --- fit recovery ------------------------------------------------------------------------------------
@@ -340,9 +340,10 @@ def test_median_report_takes_each_attribute_on_its_own():
 @pytest.fixture(scope="module")
 def one_view(models):
     G, sm, _, r, _ = models
-    # seed 3: under the 125 kimg wide G, seeds 0 and 2 draw bearded subjects, and the photo skin mask drops
+    # seed 3: under the 125 kimg wide G, seeds 0 and 2 first draw bearded z's, and the photo skin mask drops
     # beard pixels by design (skin_mask.py), so no loss sees them: the fit's albedo has no beard and Delta E
-    # after the gain stays at its start (7.5 -> 7.4, checked on pictures); seed 1 gives no face
+    # after the gain stays at its start (7.5 -> 7.4, checked on pictures); make_subject now redraws such a z
+    # (max_off_tone), and seed 3 passes on its first z, so the figures below stand; seed 1 gives no face
     subject = make_subject(G, sm, r, SyntheticSettings(n_views=1, seed=3))
     start, fits, seconds = _fit(models, subject, 60, members=MEMBERS)
     return start, _Median(fits), seconds

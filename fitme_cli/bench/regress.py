@@ -68,8 +68,8 @@ class RegressSettings:
     """The regression budget: the fast preset cut to ``iterations``, ``members`` fits per case (medians)."""
 
     iterations: int = 15
-    # beardless subjects the detector finds under the shipped G (125 kimg wide): its seed 1 is not found and
-    # seed 2 is bearded, which the skin mask hides from the fit (docs/fitting.md); new weights, new subjects
+    # subjects the detector finds under the shipped G (125 kimg wide): its seed 1 is not found; seed 2's first
+    # z is bearded (make_subject now redraws it, docs/fitting_synthetic.md); new weights, new subjects
     synthetic_seeds: tuple[int, ...] = (3, 4)
     sample_photos: tuple[str, ...] = ("astronaut",)
     synthetic_size: int = 512
