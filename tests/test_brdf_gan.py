@@ -208,6 +208,32 @@ def test_noise_gain_scales_the_noise():
         G.synthesis(ws, noise_mode="const", noise_gain=1.5)
 
 
+@pytest.mark.parametrize("mode", ["random", "const"])
+def test_modality_branches_share_their_noise(mode):
+    """The albedo and normal branches have 3 channels each: given the same weights, they draw the same
+    maps exactly when they see the same noise (one micro-geometry for all maps; a draw per branch left
+    the trained 256^2 noise strengths at ~1e-4)."""
+    G = Generator(TINY)
+    syn = G.synthesis
+    syn.branches["normals"].load_state_dict(syn.branches["albedo"].state_dict())
+    for p in syn.branches["normals"].parameters():  # the load copied them; make sure no tensor is shared
+        assert all(p.data_ptr() != q.data_ptr() for q in syn.branches["albedo"].parameters())
+    for mod in syn.modules():
+        if hasattr(mod, "noise_strength"):
+            mod.noise_strength.data.fill_(0.5)
+    syn.branches["normals"]["b16"].conv1.noise_const.normal_()  # "const" must not read the copy's own buffer
+    syn.mean_image.zero_()
+    for block in syn.trunk.values():  # the skip images' albedo and normal channels differ; take them out
+        block.to_image.weight.data.zero_()
+        block.to_image.bias.data.zero_()
+    ws = G.ws(torch.randn(2, TINY.z_dim))
+    with torch.no_grad():
+        out = syn(ws, noise_mode=mode)
+        still = syn(ws, noise_mode="none")
+    torch.testing.assert_close(out.normals, out.albedo, rtol=0, atol=0)
+    assert (out.albedo - still.albedo).abs().mean() > 1e-3  # the noise did reach the branches
+
+
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="power of two"):
         GanSettings(resolution=100)
@@ -411,6 +437,85 @@ def test_moment_drift_weight_pulls_the_fakes_toward_the_data_means():
         TrainSettings(moment_drift_beta=1.0)
 
 
+def _linked_maps(r: int = 32) -> torch.Tensor:
+    """(3, 7, r, r) network space: n_x = sin(pi u / 2), so the divergence is 2 cos(pi u / 2); sample 0's
+    albedo is cos (darker in the cavities), sample 1's -cos, sample 2's sin (a quarter period off)."""
+    u = torch.arange(r, dtype=torch.float64).expand(r, r) * (math.pi / 2)
+    x = torch.zeros(3, 7, r, r, dtype=torch.float64)
+    for i, lum in enumerate((u.cos(), -u.cos(), u.sin())):
+        x[i, 0:3] = 0.2 * lum
+    x[:, 4] = u.sin()
+    return x
+
+
+def test_detail_link_known_values_and_bad_input():
+    from fitme_cli.reflectance.gan.train import data_link, detail_link
+
+    x = _linked_maps()
+    inner = torch.zeros(32, 32, dtype=torch.bool)
+    inner[:, 4:-4] = True  # away from the borders, the 9-texel mean of a period-4 wave is 1/9 of it
+    torch.testing.assert_close(detail_link(x, inner), torch.tensor([1.0, -1.0, 0.0], dtype=torch.float64), atol=1e-9, rtol=0)
+    whole = detail_link(x)
+    assert whole[0] > 0.9 and whole[1] < -0.9 and abs(whole[2]) < 0.1
+    assert data_link(x[:1].float(), inner) == pytest.approx(1.0, abs=1e-5)
+    assert data_link(x.float(), inner, n=2, chunk=1) == pytest.approx(0.0, abs=1e-5)  # the first two: +1 and -1
+    with pytest.raises(ValueError, match=r"expected \(B, 7, R >= 9, R\) maps, got \(3, 6, 32, 32\)"):
+        detail_link(x[:, :6])
+    with pytest.raises(ValueError, match="expected a bool mask of shape \\(32, 32\\)"):
+        detail_link(x, inner.float())
+    with pytest.raises(ValueError, match="with >= 2 texels set"):
+        detail_link(x, torch.zeros(32, 32, dtype=torch.bool))
+
+
+def test_link_loss_pulls_by_the_running_gap_and_its_gradients_check():
+    from fitme_cli.reflectance.gan.train import detail_link, link_loss
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 7, 12, 12, dtype=torch.float64, generator=g, requires_grad=True)
+    mask = torch.zeros(12, 12, dtype=torch.bool)
+    mask[2:10, 3:11] = True
+    assert torch.autograd.gradcheck(lambda t: detail_link(t, mask), (x,))
+    links = detail_link(x, mask)
+    assert link_loss(links, 0.1, 0.4).item() == pytest.approx(-0.6 * links.mean().item())
+    for running, target, sign in ((0.1, 0.4, 1), (0.6, 0.4, -1)):
+        (grad,) = torch.autograd.grad(link_loss(detail_link(x, mask), running, target), x)
+        with torch.no_grad():
+            moved = detail_link(x - 0.05 * grad / grad.abs().max(), mask).mean() - links.mean()
+        assert sign * moved > 0.01, (running, target, float(moved))  # below target: up; above: down
+    (grad,) = torch.autograd.grad(link_loss(detail_link(x, mask), 0.4, 0.4), x)
+    assert grad.abs().max() == 0  # on target: no pull, whatever this batch's own link
+
+
+def test_link_weight_raises_the_link_of_the_fakes():
+    """Same seed, same steps: with the link term and a high target G's albedo detail follows its
+    normals' cavities more; it needs the target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import detail_link
+
+    data = _tiny_data()
+
+    def run(weight):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, link_weight=weight))
+        state.link_target = 0.9
+        torch.manual_seed(0)
+        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+               for i in range(30)]
+        with torch.no_grad():
+            fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
+        return float(detail_link(fake).mean()), out
+
+    off, l_off = run(0.0)
+    on, l_on = run(50.0)
+    assert on > off + 0.1, (on, off)  # 0.78 against 0.31 measured
+    assert "link" not in l_off[0] and -1 <= l_on[-1]["link"] <= 1
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, link_weight=1.0))
+    with pytest.raises(ValueError, match="needs state.link_target"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match="link_weight must be finite and >= 0, got -1.0"):
+        TrainSettings(link_weight=-1.0)
+    with pytest.raises(ValueError, match="link_beta must be in"):
+        TrainSettings(link_beta=1.0)
+
+
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
     data = _tiny_data()
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
@@ -552,7 +657,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
-                                  "--threads", "1"])
+                                  "--link-weight", "20", "--threads", "1"])
     assert r.exit_code == 0, r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
@@ -563,6 +668,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert lines[-1]["loss_moment"] > 0 and lines[0]["loss_moment"] == 0  # recorded; 0 while the term was off
     assert lines[-1]["moment_drift"] > 0 and "moment_drift" not in lines[0]
+    assert state.train.link_weight == 20.0 and -1 <= lines[-1]["link"] <= 1 and "link" not in lines[0]
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output

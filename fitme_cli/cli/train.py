@@ -42,7 +42,20 @@ def _stop_requests():
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
-                "ada_target", "ada_color", "moment_weight", "moment_drift_weight")
+                "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight")
+
+
+def _detail_region(resolution: int):
+    """(R, R) bool: the shape model's skin regions at the maps' resolution, where --link-weight measures."""
+    import cv2
+    import torch
+    from safetensors.numpy import load_file
+
+    from ..perception.registry import ensure_models
+    from ..reflectance.gan.metrics import detail_region
+
+    region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
+    return detail_region(torch.from_numpy(cv2.resize(region_uv, (resolution,) * 2, interpolation=cv2.INTER_NEAREST)))
 
 
 @click.command("train")
@@ -76,6 +89,9 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                    "--resume). [0]")
 @click.option("--moment-drift-weight", type=click.FloatRange(min=0),
               help="Pull the running (~100-step) per-channel mean and std of G's batches to the data's (not in the paper; may change on --resume). [0]")
+@click.option("--link-weight", type=click.FloatRange(min=0),
+              help="Pull the running mean link of G's albedo detail to its normals' cavities to the data's (not in the "
+                   "paper; may change on --resume). [0]")
 @click.option("--seed", type=int, help="[0]")
 @click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
@@ -142,7 +158,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
-                      "moment_drift_weight")
+                      "moment_drift_weight", "link_weight")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:
@@ -197,6 +213,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     elif state.learned_mean_image:
         reset_mean_image(state, data.float().mean(0))
         click.echo("the checkpoint's mean image was trained (before it became fixed): reset to the data mean", err=True)
+    if state.train.link_weight > 0:
+        state.link_mask = _detail_region(gan_settings.resolution)
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
                f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
     with _stop_requests() as stops:

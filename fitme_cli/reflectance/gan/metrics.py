@@ -26,7 +26,8 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_labels", "reflectance_features",
-           "feature_parts", "region_albedo", "frechet_distance", "modality_consistency", "interpolation_smoothness"]
+           "feature_parts", "region_albedo", "frechet_distance", "detail_region", "modality_consistency",
+           "interpolation_smoothness"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -88,6 +89,17 @@ def region_labels(regions: torch.Tensor) -> list[int]:
     """(R, R) uint8 label map -> its mapped labels (255 = unmapped) ascending: the order of the regions'
     blocks in ``reflectance_features``."""
     return sorted(int(v) for v in torch.unique(regions) if int(v) != 255)
+
+
+DETAIL_LABELS = (1, 2, 5)  # skin, forehead, nose (shape_model region_uv): where the pores and wrinkles are
+
+
+def detail_region(regions: torch.Tensor) -> torch.Tensor:
+    """(R, R) uint8 label map -> (R, R) bool: the skin regions the modality link is measured on."""
+    mask = torch.zeros(regions.shape, dtype=torch.bool, device=regions.device)
+    for lab in DETAIL_LABELS:
+        mask |= regions == lab
+    return mask
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

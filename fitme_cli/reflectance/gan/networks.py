@@ -182,10 +182,15 @@ class _SynthesisLayer(nn.Module):
         self.register_buffer("noise_const", torch.randn(res, res))
         self.up, self.res, self.clamp = up, res, clamp
 
-    def forward(self, x: torch.Tensor, w: torch.Tensor, noise_mode: str, noise_gain: float = 1.0) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, w: torch.Tensor, noise_mode: str, noise_gain: float = 1.0,
+                noise: torch.Tensor | None = None) -> torch.Tensor:
+        """noise: (B or 1, 1, res, res) given by the caller (the modality branches share theirs), else
+        drawn (random) or the layer's own (const)."""
         styles = self.affine(w)
         x = modulated_conv2d(x, self.weight, styles, demodulate=True, up=self.up)
-        if noise_mode == "random":
+        if noise is not None:
+            x = x + noise * (self.noise_strength * noise_gain)
+        elif noise_mode == "random":
             x = x + torch.randn(x.shape[0], 1, self.res, self.res, device=x.device, dtype=x.dtype) * (self.noise_strength * noise_gain)
         elif noise_mode == "const":
             x = x + self.noise_const * (self.noise_strength * noise_gain)
@@ -221,11 +226,12 @@ class _SynthesisBlock(nn.Module):
         self.conv1 = _SynthesisLayer(c_out, c_out, s.w_dim, res, up=False, clamp=s.conv_clamp)
         self.to_image = _ToImage(c_out, img_channels, s.w_dim, s.conv_clamp)
 
-    def forward(self, x, img, ws, noise_mode, noise_gain=1.0):
-        """ws: (B, 3, w_dim) for conv0, conv1, toImage (the 4x4 block uses the last two)."""
+    def forward(self, x, img, ws, noise_mode, noise_gain=1.0, noises=(None, None)):
+        """ws: (B, 3, w_dim) for conv0, conv1, toImage (the 4x4 block uses the last two); noises: given
+        noise for conv0, conv1 (or None: the layer's own)."""
         if self.conv0 is not None:
-            x = self.conv0(x, ws[:, 0], noise_mode, noise_gain)
-        x = self.conv1(x, ws[:, 1], noise_mode, noise_gain)
+            x = self.conv0(x, ws[:, 0], noise_mode, noise_gain, noises[0])
+        x = self.conv1(x, ws[:, 1], noise_mode, noise_gain, noises[1])
         y = self.to_image(x, ws[:, 2])
         img = y if img is None else upsample2x(img) + y
         return x, img
@@ -290,16 +296,33 @@ class SynthesisNetwork(nn.Module):
             mean = torch.nn.functional.adaptive_avg_pool2d(mean, top)
         if top < s.branch_resolution:
             return GanImages.split(img + mean)
+        noises = {res: self._branch_noise(res, x, noise_mode) for res in s.resolutions if s.branch_resolution <= res <= top}
         outs = []
         start = 0
         for name, ch in MODALITIES:
             xm, im = x, None if img is None else img[:, start : start + ch]
-            for res in s.resolutions:
-                if s.branch_resolution <= res <= top:
-                    xm, im = self.branches[name][f"b{res}"](xm, im, self._w_slice(ws, res), noise_mode, noise_gain)
+            for res, noise in noises.items():
+                xm, im = self.branches[name][f"b{res}"](xm, im, self._w_slice(ws, res), noise_mode, noise_gain, noise)
             outs.append(im + mean[:, start : start + ch])
             start += ch
         return GanImages(*outs)
+
+    def _branch_noise(self, res: int, x: torch.Tensor, noise_mode: str) -> tuple:
+        """(conv0, conv1) noise for the branched block at res, one draw for all modalities: noise stands for
+        the micro-geometry (a pore, a hair strand) that each map draws, so each must see the same. With a
+        draw per branch, the albedo's strands and the normals' could not line up, and D's joint branch
+        punishes detail that does not: the 256^2 noise strengths of every run until 2026-11-26 stayed
+        at ~1e-4, and the finest detail came from the trunk's 128^2 noise (docs/brdf_gan.md).
+        "const" uses the first branch's buffers (the other branches' copies are kept so that
+        checkpoints load unchanged)."""
+        block = self.branches[MODALITIES[0][0]][f"b{res}"]
+        layers = (block.conv0, block.conv1)
+        if noise_mode == "random":
+            return tuple(None if l is None else torch.randn(x.shape[0], 1, res, res, device=x.device, dtype=x.dtype)
+                         for l in layers)
+        if noise_mode == "const":
+            return tuple(None if l is None else l.noise_const for l in layers)
+        return (None, None)
 
     def layer_names(self) -> list[str]:
         """Conv layers in synthesis order, one name per W index ('b16.conv1'); branched layers are one

@@ -15,7 +15,7 @@ import torch
 
 from .data import load_dataset
 from .latents import sample_z
-from .metrics import (ChannelStats, StdParts, feature_parts, frechet_distance, interpolation_smoothness,
+from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
                       modality_consistency, reflectance_features, region_albedo, region_labels, std_parts)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
@@ -87,9 +87,7 @@ def evaluate_psis(G: Generator, data: torch.Tensor, regions: torch.Tensor, trunc
                   n_fake: int = 500, n_real: int = 1000, seed: int = 0) -> list[dict]:
     """``evaluate`` at each truncation psi, the data side measured once."""
     mapped = regions != 255
-    skin = torch.zeros_like(mapped)
-    for lab in (1, 2, 5):  # skin, forehead, nose: where the wrinkles and pores are
-        skin |= regions == lab
+    skin = detail_region(regions)
     n_real = min(n_real, len(data))
     real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin)
     return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin), real, regions, seed, psi)

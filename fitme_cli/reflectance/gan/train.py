@@ -24,7 +24,8 @@ from .latents import sample_z
 from .networks import Discriminator, GanSettings, Generator
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
-           "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running"]
+           "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
+           "detail_link", "data_link", "link_loss"]
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,13 @@ class TrainSettings:
     # that both terms answered was mostly an evaluation-seed artefact (docs/brdf_gan.md). 0: off
     moment_drift_weight: float = 0.0
     moment_drift_beta: float = 0.99  # per-step decay of the running moments (~100 steps, 400 images)
+    # not in the paper: weight of a term that pulls the running mean of G's ``detail_link`` (does the
+    # albedo darken where the normals show a cavity?) to the data's. Every run's link stayed at a
+    # quarter to a third of the data's, with and without D's joint branch (docs/brdf_gan.md). Like the
+    # drift term, its gradient follows the running gap, so it moves the average link without squeezing
+    # each batch to the target. 0: off (the paper)
+    link_weight: float = 0.0
+    link_beta: float = 0.99  # per-step decay of the running link
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -77,6 +85,10 @@ class TrainSettings:
             raise ValueError(f"moment_drift_weight must be finite and >= 0, got {self.moment_drift_weight}")
         if not 0 <= self.moment_drift_beta < 1:
             raise ValueError(f"moment_drift_beta must be in [0, 1), got {self.moment_drift_beta}")
+        if not (self.link_weight >= 0 and math.isfinite(self.link_weight)):
+            raise ValueError(f"link_weight must be finite and >= 0, got {self.link_weight}")
+        if not 0 <= self.link_beta < 1:
+            raise ValueError(f"link_beta must be in [0, 1), got {self.link_beta}")
 
 
 @dataclass
@@ -103,6 +115,13 @@ class TrainState:
     # (2, 7) float32: running ``batch_moments`` of G's training batches (``drift_loss``); not saved, a
     # resume starts it again from its first batch
     running_moments: torch.Tensor | None = None
+    # the data's mean ``detail_link`` (``data_link``), the link term's target, and the running mean of
+    # G's; derived and restarted like the moments, not saved
+    link_target: float | None = None
+    running_link: float | None = None
+    # (R, R) bool: where the link is measured (the skin regions, ``metrics.detail_region``; None: the
+    # whole map, where hair and the unmapped border dominate it); set by the caller, not saved
+    link_mask: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -193,6 +212,45 @@ def update_running(running: torch.Tensor | None, moments: torch.Tensor, beta: fl
     return moments.clone() if running is None else running.lerp(moments, 1 - beta)
 
 
+def detail_link(x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,) float: per sample, the correlation of the albedo's fine detail (luminance minus its 9-texel
+    mean) with the normals' divergence (cavities < 0) over the texels of ``mask`` (R, R) bool (None:
+    all); positive when cavities are darker. x: (B, 7, R, R) network space. The card's
+    ``metrics.modality_consistency`` is the same measure on physical maps; with the skin regions as
+    mask (``metrics.detail_region``) the two agree in sign and order."""
+    from .metrics import _divergence
+
+    if x.ndim != 4 or x.shape[1] != 7 or x.shape[2] < 9:
+        raise ValueError(f"detail_link: expected (B, 7, R >= 9, R) maps, got {tuple(x.shape)}")
+    if mask is not None and (mask.shape != x.shape[2:] or mask.dtype != torch.bool or int(mask.sum()) < 2):
+        raise ValueError(f"detail_link: expected a bool mask of shape {tuple(x.shape[2:])} with >= 2 texels set, "
+                         f"got {mask.dtype} {tuple(mask.shape)}")
+    lum = x[:, 0:3].mean(1, keepdim=True)
+    detail = (lum - F.avg_pool2d(lum, 9, stride=1, padding=4, count_include_pad=False))[:, 0]
+    div = _divergence(x[:, 4:7])
+    if mask is None:
+        detail, div = detail.flatten(1), div.flatten(1)
+    else:
+        detail, div = detail[:, mask], div[:, mask]
+    detail = detail - detail.mean(1, keepdim=True)
+    div = div - div.mean(1, keepdim=True)
+    return (detail * div).sum(1) / (detail.norm(dim=1) * div.norm(dim=1) + 1e-12)
+
+
+def data_link(data: torch.Tensor, mask: torch.Tensor | None = None, n: int = 512, chunk: int = 64) -> float:
+    """The mean ``detail_link`` of the first n data samples (the link term's target)."""
+    with torch.no_grad():
+        return float(torch.cat([detail_link(data[i : i + chunk].float(), mask)
+                                for i in range(0, min(n, len(data)), chunk)]).mean())
+
+
+def link_loss(links: torch.Tensor, running: float, target: float) -> torch.Tensor:
+    """-2 (target - running) * links.mean(), links: (B,) ``detail_link`` of a fake batch, ``running`` held
+    constant: the gradient of (target - running)^2 taken through this batch (as ``drift_loss``). Its
+    value is not a distance."""
+    return -2 * (target - running) * links.mean()
+
+
 def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     t = state.train
     return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
@@ -224,8 +282,17 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         state.running_moments = update_running(state.running_moments, batch_moments(fake), t.moment_drift_beta)
         loss_drift = drift_loss(fake, state.running_moments, state.moments)
         drift = float((state.running_moments - state.moments).square().sum())
+    loss_link = torch.zeros(())
+    link = None
+    if t.link_weight > 0:
+        if state.link_target is None:
+            raise ValueError(f"train_step: link_weight {t.link_weight} needs state.link_target (data_link of the training data)")
+        links = detail_link(fake, state.link_mask)
+        link = float(links.detach().mean())
+        state.running_link = link if state.running_link is None else state.running_link + (1 - t.link_beta) * (link - state.running_link)
+        loss_link = link_loss(links, state.running_link, state.link_target)
     state.opt_G.zero_grad(set_to_none=True)
-    (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift).backward()
+    (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link).backward()
     state.opt_G.step()
     # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
     G.requires_grad_(False)
@@ -270,6 +337,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
            "loss_moment": float(loss_m.detach())}
     if drift is not None:
         out["moment_drift"] = drift  # |running - target|^2, the drift term's distance
+    if link is not None:
+        out["link"] = link  # this batch's mean detail_link (the target: state.link_target)
     return out
 
 
@@ -452,6 +521,8 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         raise ValueError(f"expected data of shape (N, 7, {r}, {r}), got {tuple(data.shape)}")
     if (t.moment_weight > 0 or t.moment_drift_weight > 0) and state.moments is None:
         state.moments = data_moments(data, t.batch, seed=t.seed)
+    if t.link_weight > 0 and state.link_target is None:
+        state.link_target = data_link(data, state.link_mask)
     total = int(t.kimg * 1000)
     snap_every = max(int(t.snapshot_kimg * 1000), t.batch)
     next_snap = (state.nimg // snap_every + 1) * snap_every
