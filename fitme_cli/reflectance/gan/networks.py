@@ -318,10 +318,10 @@ class SynthesisNetwork(nn.Module):
         block = self.branches[MODALITIES[0][0]][f"b{res}"]
         layers = (block.conv0, block.conv1)
         if noise_mode == "random":
-            return tuple(None if l is None else torch.randn(x.shape[0], 1, res, res, device=x.device, dtype=x.dtype)
-                         for l in layers)
+            return tuple(None if layer is None else torch.randn(x.shape[0], 1, res, res, device=x.device, dtype=x.dtype)
+                         for layer in layers)
         if noise_mode == "const":
-            return tuple(None if l is None else l.noise_const for l in layers)
+            return tuple(None if layer is None else layer.noise_const for layer in layers)
         return (None, None)
 
     def layer_names(self) -> list[str]:
