@@ -449,7 +449,8 @@ def _linked_maps(r: int = 32) -> torch.Tensor:
 
 
 def test_detail_link_known_values_and_bad_input():
-    from fitme_cli.reflectance.gan.train import data_link, detail_link
+    from fitme_cli.reflectance.gan.metrics import detail_link
+    from fitme_cli.reflectance.gan.train import data_link
 
     x = _linked_maps()
     inner = torch.zeros(32, 32, dtype=torch.bool)
@@ -468,7 +469,8 @@ def test_detail_link_known_values_and_bad_input():
 
 
 def test_link_loss_pulls_by_the_running_gap_and_its_gradients_check():
-    from fitme_cli.reflectance.gan.train import detail_link, link_loss
+    from fitme_cli.reflectance.gan.metrics import detail_link
+    from fitme_cli.reflectance.gan.train import link_loss
 
     g = torch.Generator().manual_seed(0)
     x = torch.randn(2, 7, 12, 12, dtype=torch.float64, generator=g, requires_grad=True)
@@ -489,7 +491,7 @@ def test_link_loss_pulls_by_the_running_gap_and_its_gradients_check():
 def test_link_weight_raises_the_link_of_the_fakes():
     """Same seed, same steps: with the link term and a high target G's albedo detail follows its
     normals' cavities more; it needs the target, and bad settings are refused."""
-    from fitme_cli.reflectance.gan.train import detail_link
+    from fitme_cli.reflectance.gan.metrics import detail_link
 
     data = _tiny_data()
 

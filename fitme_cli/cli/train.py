@@ -45,19 +45,6 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight")
 
 
-def _detail_region(resolution: int):
-    """(R, R) bool: the shape model's skin regions at the maps' resolution, where --link-weight measures."""
-    import cv2
-    import torch
-    from safetensors.numpy import load_file
-
-    from ..perception.registry import ensure_models
-    from ..reflectance.gan.metrics import detail_region
-
-    region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
-    return detail_region(torch.from_numpy(cv2.resize(region_uv, (resolution,) * 2, interpolation=cv2.INTER_NEAREST)))
-
-
 @click.command("train")
 @click.argument("data_dir", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory: checkpoint, metrics, sample grids.")
@@ -115,7 +102,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
 
     from ..errors import InputNotFound, OutputNotWritable
     from ..io.atomic import atomic_write_bytes
-    from ..reflectance.gan.data import load_dataset
+    from ..reflectance.gan.data import load_dataset, load_regions
+    from ..reflectance.gan.metrics import detail_region
     from ..reflectance.gan.networks import GanSettings
     from ..reflectance.gan.train import (TrainSettings, load_checkpoint, new_state, reset_mean_image, save_checkpoint,
                                          set_learning_rates, train)
@@ -214,7 +202,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         reset_mean_image(state, data.float().mean(0))
         click.echo("the checkpoint's mean image was trained (before it became fixed): reset to the data mean", err=True)
     if state.train.link_weight > 0:
-        state.link_mask = _detail_region(gan_settings.resolution)
+        state.link_mask = detail_region(load_regions(gan_settings.resolution))  # where --link-weight measures
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
                f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
     with _stop_requests() as stops:

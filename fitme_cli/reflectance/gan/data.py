@@ -17,7 +17,7 @@ import torch
 from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
-__all__ = ["find_samples", "load_sample", "load_dataset"]
+__all__ = ["find_samples", "load_sample", "load_dataset", "load_regions"]
 
 _KINDS = ("albedo", "specular", "normals")
 
@@ -96,3 +96,13 @@ def load_dataset(data_dir: Path, s: GanSettings, limit: int | None = None, progr
         x = torch.from_numpy(load_sample(data_dir, stem, resolution))[None]
         out[i] = encode_maps(ReflectanceMaps(x[:, :3], x[:, 3:4], x[:, 4:]), s).cat()[0]
     return out
+
+
+def load_regions(resolution: int) -> torch.Tensor:
+    """(R, R) uint8: the shape model's UV region labels (255 unmapped) at the maps' resolution (nearest)."""
+    from safetensors.numpy import load_file
+
+    from ...perception.registry import ensure_models
+
+    region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
+    return torch.from_numpy(cv2.resize(region_uv, (resolution,) * 2, interpolation=cv2.INTER_NEAREST))

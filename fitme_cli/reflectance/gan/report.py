@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data import load_dataset
+from .data import load_dataset, load_regions
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
                       modality_consistency, reflectance_features, region_albedo, region_labels, std_parts)
@@ -233,10 +233,6 @@ def _half(img: np.ndarray) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    from safetensors.numpy import load_file
-
-    from ...perception.registry import ensure_models
-
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run_dir", type=Path)
     ap.add_argument("data_dir", type=Path)
@@ -254,10 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     state = load_checkpoint(args.run_dir / "checkpoint.safetensors")
     G = copy_generator(state.G_ema)
     data = load_dataset(args.data_dir, G.settings, limit=args.n_real, progress=True)
-    region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
-    import cv2
-
-    regions = torch.from_numpy(cv2.resize(region_uv, (G.settings.resolution,) * 2, interpolation=cv2.INTER_NEAREST))
+    regions = load_regions(G.settings.resolution)
     psis = (args.truncation_psi,) if args.truncation_psi == 1 else (args.truncation_psi, 1.0)
     metrics, *untruncated = evaluate_psis(G, data, regions, psis, n_fake=args.n_fake, n_real=args.n_real)
     data_card = json.loads((args.data_dir / "dataset.json").read_text()) if (args.data_dir / "dataset.json").is_file() else {}

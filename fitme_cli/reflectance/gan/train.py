@@ -21,11 +21,12 @@ import torch.nn.functional as F
 
 from .ada import augment
 from .latents import sample_z
+from .metrics import detail_link
 from .networks import Discriminator, GanSettings, Generator
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
-           "detail_link", "data_link", "link_loss"]
+           "data_link", "link_loss"]
 
 
 @dataclass(frozen=True)
@@ -212,40 +213,15 @@ def update_running(running: torch.Tensor | None, moments: torch.Tensor, beta: fl
     return moments.clone() if running is None else running.lerp(moments, 1 - beta)
 
 
-def detail_link(x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """(B,) float: per sample, the correlation of the albedo's fine detail (luminance minus its 9-texel
-    mean) with the normals' divergence (cavities < 0) over the texels of ``mask`` (R, R) bool (None:
-    all); positive when cavities are darker. x: (B, 7, R, R) network space. The card's
-    ``metrics.modality_consistency`` is the same measure on physical maps; with the skin regions as
-    mask (``metrics.detail_region``) the two agree in sign and order."""
-    from .metrics import _divergence
-
-    if x.ndim != 4 or x.shape[1] != 7 or x.shape[2] < 9:
-        raise ValueError(f"detail_link: expected (B, 7, R >= 9, R) maps, got {tuple(x.shape)}")
-    if mask is not None and (mask.shape != x.shape[2:] or mask.dtype != torch.bool or int(mask.sum()) < 2):
-        raise ValueError(f"detail_link: expected a bool mask of shape {tuple(x.shape[2:])} with >= 2 texels set, "
-                         f"got {mask.dtype} {tuple(mask.shape)}")
-    lum = x[:, 0:3].mean(1, keepdim=True)
-    detail = (lum - F.avg_pool2d(lum, 9, stride=1, padding=4, count_include_pad=False))[:, 0]
-    div = _divergence(x[:, 4:7])
-    if mask is None:
-        detail, div = detail.flatten(1), div.flatten(1)
-    else:
-        detail, div = detail[:, mask], div[:, mask]
-    detail = detail - detail.mean(1, keepdim=True)
-    div = div - div.mean(1, keepdim=True)
-    return (detail * div).sum(1) / (detail.norm(dim=1) * div.norm(dim=1) + 1e-12)
-
-
 def data_link(data: torch.Tensor, mask: torch.Tensor | None = None, n: int = 512, chunk: int = 64) -> float:
-    """The mean ``detail_link`` of the first n data samples (the link term's target)."""
+    """The mean ``metrics.detail_link`` of the first n data samples (the link term's target)."""
     with torch.no_grad():
         return float(torch.cat([detail_link(data[i : i + chunk].float(), mask)
                                 for i in range(0, min(n, len(data)), chunk)]).mean())
 
 
 def link_loss(links: torch.Tensor, running: float, target: float) -> torch.Tensor:
-    """-2 (target - running) * links.mean(), links: (B,) ``detail_link`` of a fake batch, ``running`` held
+    """-2 (target - running) * links.mean(), links: (B,) ``metrics.detail_link`` of a fake batch, ``running`` held
     constant: the gradient of (target - running)^2 taken through this batch (as ``drift_loss``). Its
     value is not a distance."""
     return -2 * (target - running) * links.mean()
