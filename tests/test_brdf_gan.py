@@ -766,7 +766,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     regions = torch.from_numpy(cv2.resize(region_uv, (64, 64), interpolation=cv2.INTER_NEAREST))
     m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
     assert set(m) == {"per_channel", "std_ratio_by_scale", "frechet_reflectance_features", "region_albedo_q10_q50_q90",
-                      "modality_consistency", "interpolation_max_over_mean_step"}
+                      "modality_consistency", "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step"}
+    coh = m["strand_coherence_albedo_normal_x"]
+    assert set(coh) == set(m["region_albedo_q10_q50_q90"])
+    assert all(len(v) == 2 and all(0 <= c <= 1 for c in v) for r in coh.values() for v in r.values())
     assert all(set(r) == {"between", "coarse", "fine"} and all(np.isfinite(v) and v >= 0 for v in r.values())
                for r in m["std_ratio_by_scale"].values()) and len(m["std_ratio_by_scale"]) == 7
     assert set(m["frechet_reflectance_features"]["by_part"]) == {"tone", "detail"}
@@ -807,6 +810,41 @@ def test_closeup_shows_the_data_then_each_truncation_at_full_resolution():
     albedo = decode_maps(GanImages.split(data[:1]), TINY).albedo[0, :, 4:12, 4:12]
     expected = (linear_to_srgb(albedo).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
     np.testing.assert_allclose(img[:8, :8].astype(int), expected.astype(int), atol=1)  # the first data sample's face
+
+
+def test_orientation_coherence_known_values_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import orientation_coherence, strand_coherence
+
+    u = torch.arange(48.0)
+    stripes = torch.sin(u * 2 * math.pi / 6).view(1, 1, 48).expand(1, 48, 48)
+    diagonal = torch.sin((u[:, None] + u[None]) * 2 * math.pi / 8)[None]
+    inner = (slice(None), slice(8, -8), slice(8, -8))
+    for img in (stripes, stripes.transpose(1, 2), diagonal):  # one direction, whatever it is: 1
+        torch.testing.assert_close(orientation_coherence(img)[inner], torch.ones(1, 32, 32))
+    noise = torch.randn(4, 64, 64, generator=torch.Generator().manual_seed(0))
+    c = orientation_coherence(noise)
+    assert c.shape == (4, 64, 64) and 0 <= c.min() and c.max() <= 1
+    assert 0.15 < c.mean() < 0.35  # isotropic grain: 0.24
+    assert orientation_coherence(noise, 3.0).mean() < c.mean()  # a wider window averages more directions
+    assert orientation_coherence(torch.zeros(2, 16, 16)).abs().max() == 0  # flat: no direction, no NaN
+    assert orientation_coherence(1e-3 * stripes)[inner].min() > 0.999  # scale-free
+    # per region: stripes in the albedo of region 0, noise elsewhere and in the normals
+    phys = torch.zeros(2, 7, 48, 48)
+    phys[:, 0:3] = noise[:2, None, :48, :48]
+    phys[:, 0:3, :, :24] = stripes[..., :24]
+    phys[:, 4] = noise[2:, :48, :48]
+    regions = torch.full((48, 48), 255, dtype=torch.uint8)
+    regions[8:40, 4:16], regions[8:40, 32:44] = 0, 3
+    coh = strand_coherence(phys, regions)
+    assert coh.shape == (2, 2) and coh[0, 0] > 0.99 and coh[1, 0] < 0.4 and max(coh[:, 1]) < 0.4
+    with pytest.raises(ValueError, match=r"expected a float \(N, R, R\) image, got \(48, 48\)"):
+        orientation_coherence(stripes[0])
+    with pytest.raises(ValueError, match=r"wider than 6 sigma, got sigma 3.0 for \(16, 16\)"):
+        orientation_coherence(torch.zeros(1, 16, 16), 3.0)
+    with pytest.raises(ValueError, match="expected sigma > 0"):
+        orientation_coherence(torch.zeros(1, 16, 16), 0.0)
+    with pytest.raises(ValueError, match=r"expected \(N, 7, R, R\) maps and \(R, R\) regions"):
+        strand_coherence(phys[:, :6], regions)
 
 
 def test_std_parts_known_values_and_bad_input():

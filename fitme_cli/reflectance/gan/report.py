@@ -16,7 +16,8 @@ import torch
 from .data import load_dataset, load_regions
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
-                      modality_consistency, reflectance_features, region_albedo, region_labels, std_parts)
+                      modality_consistency, reflectance_features, region_albedo, region_labels, std_parts,
+                      strand_coherence)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -63,9 +64,10 @@ def _encoded(stats_mean, stats_std):
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
-             mapped: torch.Tensor, skin: torch.Tensor) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts]:
+             mapped: torch.Tensor, skin: torch.Tensor
+             ) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts, np.ndarray]:
     """One side of the comparison (generated when src is None): channel stats, reflectance features,
-    modality consistency and the std by scale (the last two on the first 200 samples)."""
+    modality consistency, the std by scale and the strand coherence (the last three on the first 200 samples)."""
     st, fs, cm = _Stats(mapped), [], []
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
@@ -73,7 +75,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         if sum(len(c) for c in cm) < 200:
             cm.append(x)
     first = torch.cat(cm)[:200]
-    return st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped)
+    return (st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
+            strand_coherence(first, regions))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -104,7 +107,7 @@ def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
 
 
 def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncation_psi: float) -> dict:
-    (gan_stats, gan_feats, gan_cons, gan_parts), (data_stats, data_feats, data_cons, data_parts) = gan, real
+    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh), (data_stats, data_feats, data_cons, data_parts, data_coh) = gan, real
     half = len(data_feats) // 2
     fm, fsd = _encoded(gan_stats.mean, gan_stats.std)
     rm, rsd = _encoded(data_stats.mean, data_stats.std)
@@ -140,6 +143,10 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
         "region_albedo_q10_q50_q90": region_tone,
         "modality_consistency": {"gan_matched": round(gan_cons[0], 3), "gan_mismatched": round(gan_cons[1], 3),
                                  "data_matched": round(data_cons[0], 3), "data_mismatched": round(data_cons[1], 3)},
+        # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region
+        "strand_coherence_albedo_normal_x": {_region_name(lab): {"data": [round(float(v), 3) for v in data_coh[j]],
+                                                                 "gan": [round(float(v), 3) for v in gan_coh[j]]}
+                                             for j, lab in enumerate(region_labels(regions))},
         "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
     }
 
