@@ -215,9 +215,9 @@ def orientation_coherence(img: torch.Tensor, sigma: float = 1.5) -> torch.Tensor
     gx = F.pad(x[..., :, 2:] - x[..., :, :-2], (1, 1, 0, 0), mode="replicate")
     gy = F.pad(x[..., 2:, :] - x[..., :-2, :], (0, 0, 1, 1), mode="replicate")
     jxx, jyy, jxy = (_gaussian_blur(a, sigma) for a in (gx * gx, gy * gy, gx * gy))
-    trace = jxx + jyy
-    diff = torch.sqrt((jxx - jyy) ** 2 + 4 * jxy * jxy)
-    return torch.where(trace > 1e-12 * trace.amax().clamp(min=1e-30), diff / trace.clamp(min=1e-30), 0.0)[:, 0]
+    # the smoothed tensor is positive semidefinite, so the root never exceeds the trace, and a flat
+    # window (both 0) gives 0 without a batch-wide threshold
+    return (torch.sqrt((jxx - jyy) ** 2 + 4 * jxy * jxy) / (jxx + jyy).clamp(min=1e-30))[:, 0]
 
 
 def strand_coherence(phys: torch.Tensor, regions: torch.Tensor, sigma: float = 1.5) -> np.ndarray:
