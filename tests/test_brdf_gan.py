@@ -518,6 +518,98 @@ def test_link_weight_raises_the_link_of_the_fakes():
         TrainSettings(link_beta=1.0)
 
 
+def _two_regions(r: int = 16) -> torch.Tensor:
+    """(r, r) uint8: label 2 on the left half's inner columns, 7 on the right's, 255 elsewhere."""
+    regions = torch.full((r, r), 255, dtype=torch.uint8)
+    regions[2:-2, 2 : r // 2 - 1], regions[2:-2, r // 2 + 1 : -2] = 2, 7
+    return regions
+
+
+def test_region_coherence_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import orientation_coherence, region_coherence
+    from fitme_cli.reflectance.gan.train import data_coherence
+
+    r = 32
+    u = torch.arange(float(r))
+    stripes = torch.sin(u * 2 * math.pi / 6).view(1, 1, r).expand(1, r, r)
+    noise = torch.randn(1, r, r, generator=torch.Generator().manual_seed(0))
+    img = torch.cat([noise.clone(), noise.clone()])
+    img[0, :, : r // 2] = stripes[0, :, : r // 2]  # sample 0: stripes over the left region
+    regions = torch.full((r, r), 255, dtype=torch.uint8)
+    regions[8:-8, 4:12], regions[8:-8, 20:28] = 2, 7
+    coh = region_coherence(img, regions)
+    assert coh.shape == (2, 2) and coh[0, 0] > 0.99 and coh[1, 0] < 0.5 and 0.1 < coh[0, 1] < 0.5
+    c = orientation_coherence(img)
+    torch.testing.assert_close(coh[:, 1], c[:, regions == 7].mean(1))  # a region's mean, per sample
+    x = torch.zeros(2, 7, r, r)
+    x[:, 0:3] = img[:, None]
+    torch.testing.assert_close(data_coherence(x, regions, chunk=1), coh.mean(0))  # the albedo's luminance
+    g64 = torch.randn(2, 16, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(1), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: region_coherence(t, _two_regions()), (g64,))
+    flat = torch.zeros(1, 16, 16, requires_grad=True)
+    region_coherence(flat, _two_regions()).sum().backward()
+    assert torch.isfinite(flat.grad).all()  # no direction, no NaN gradient either
+    with pytest.raises(ValueError, match=r"expected \(R, R\) uint8 regions matching the maps \(32, 32\), got \(16, 16\)"):
+        region_coherence(img, _two_regions())
+    with pytest.raises(ValueError, match="torch.float32"):
+        region_coherence(img, regions.float())
+    with pytest.raises(ValueError, match="at least one mapped region"):
+        region_coherence(img, torch.full((r, r), 255, dtype=torch.uint8))
+
+
+def test_coherence_loss_pulls_each_region_by_its_running_gap():
+    from fitme_cli.reflectance.gan.train import _albedo_coherence, coherence_loss
+
+    x = torch.randn(2, 7, 16, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    regions = _two_regions()
+    coh = _albedo_coherence(x, regions)
+    target = torch.tensor([0.5, 0.5], dtype=torch.float64)
+    running = torch.tensor([0.3, 0.8], dtype=torch.float64)  # region 2 below its target, region 7 above
+    assert coherence_loss(coh, running, target).item() == pytest.approx(-2 * (0.2 * coh[:, 0].mean() - 0.3 * coh[:, 1].mean()).item())
+    (grad,) = torch.autograd.grad(coherence_loss(coh, running, target), x)
+    with torch.no_grad():
+        moved = _albedo_coherence(x - 0.05 * grad / grad.abs().max(), regions).mean(0) - coh.mean(0)
+    assert moved[0] > 0.005 and moved[1] < -0.005, moved  # up where below target, down where above
+    (grad,) = torch.autograd.grad(coherence_loss(_albedo_coherence(x, regions), target, target), x)
+    assert grad.abs().max() == 0  # on target: no pull, whatever this batch's own coherence
+
+
+def test_coherence_weight_moves_the_fakes_coherence(tmp_path):
+    """Same seed, same steps: with the coherence term G's albedo grows more oriented toward a high target
+    and less toward a low one; it needs its regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _albedo_coherence
+
+    data = _tiny_data()
+    regions = _two_regions()
+
+    def run(weight, target=0.95):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, coherence_weight=weight))
+        state.coherence_regions, state.coherence_target = regions, torch.tensor([target, target])
+        torch.manual_seed(0)
+        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+               for i in range(30)]
+        with torch.no_grad():
+            fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
+        return float(_albedo_coherence(fake, regions).mean()), out
+
+    off, l_off = run(0.0)
+    on, l_on = run(50.0)
+    down, _ = run(50.0, 0.1)
+    assert on > off + 0.04 and down < off - 0.2, (on, off, down)  # 0.74 and 0.24 against 0.66 measured
+    assert "coherence_gap" not in l_off[0] and 0 <= l_on[-1]["coherence_gap"] <= 1
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, coherence_weight=1.0))
+    with pytest.raises(ValueError, match="needs state.coherence_regions and state.coherence_target"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match="needs state.coherence_regions"):
+        from fitme_cli.reflectance.gan.train import train as train_loop
+
+        train_loop(state, data, tmp_path, progress=False)
+    with pytest.raises(ValueError, match="coherence_weight must be finite and >= 0, got -1.0"):
+        TrainSettings(coherence_weight=-1.0)
+    with pytest.raises(ValueError, match="coherence_beta must be in"):
+        TrainSettings(coherence_beta=1.0)
+
+
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
     data = _tiny_data()
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
@@ -659,7 +751,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
-                                  "--link-weight", "20", "--threads", "1"])
+                                  "--link-weight", "20", "--coherence-weight", "20", "--threads", "1"])
     assert r.exit_code == 0, r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
@@ -671,6 +763,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert lines[-1]["loss_moment"] > 0 and lines[0]["loss_moment"] == 0  # recorded; 0 while the term was off
     assert lines[-1]["moment_drift"] > 0 and "moment_drift" not in lines[0]
     assert state.train.link_weight == 20.0 and -1 <= lines[-1]["link"] <= 1 and "link" not in lines[0]
+    assert state.train.coherence_weight == 20.0 and 0 <= lines[-1]["coherence_gap"] <= 1 and "coherence_gap" not in lines[0]
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output
@@ -845,6 +938,27 @@ def test_orientation_coherence_known_values_and_bad_input():
         orientation_coherence(torch.zeros(1, 16, 16), 0.0)
     with pytest.raises(ValueError, match=r"expected \(N, 7, R, R\) maps and \(R, R\) regions"):
         strand_coherence(phys[:, :6], regions)
+
+
+def test_orientation_field_known_values():
+    from fitme_cli.reflectance.gan.metrics import orientation_coherence, orientation_field
+
+    u = torch.arange(48.0)
+    inner = (slice(None), slice(None), slice(8, -8), slice(8, -8))
+    vertical = torch.sin(u * 2 * math.pi / 6).view(1, 1, 48).expand(1, 48, 48)  # gradient along x
+    diagonal = torch.sin((u[:, None] + u[None]) * 2 * math.pi / 8)[None]  # gradient along (1, 1)
+    for img, expected in ((vertical, (1.0, 0.0)), (-vertical, (1.0, 0.0)), (vertical.transpose(1, 2), (-1.0, 0.0)),
+                          (diagonal, (0.0, 1.0))):  # doubled angles 0, 0 (t + pi is the same stripes), pi, pi / 2
+        f = orientation_field(img)
+        assert f.shape == (1, 2, 48, 48)
+        torch.testing.assert_close(f[inner], torch.tensor(expected).view(1, 2, 1, 1).expand(1, 2, 32, 32), atol=1e-4, rtol=0)
+    noise = torch.randn(3, 32, 32, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(orientation_field(noise).norm(dim=1), orientation_coherence(noise))
+    # stripes that turn from sample to sample average out; the same stripes in every sample do not
+    turned = torch.cat([vertical, vertical.transpose(1, 2)])
+    assert orientation_field(turned)[inner].mean(0).norm(dim=0).max() < 1e-4
+    with pytest.raises(ValueError, match=r"expected a float \(N, R, R\) image"):
+        orientation_field(vertical[0])
 
 
 def test_std_parts_known_values_and_bad_input():

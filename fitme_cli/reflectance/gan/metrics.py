@@ -31,7 +31,8 @@ import torch.nn.functional as F
 
 __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_labels", "reflectance_features",
            "feature_parts", "region_albedo", "frechet_distance", "detail_region", "detail_link",
-           "modality_consistency", "interpolation_smoothness", "orientation_coherence", "strand_coherence"]
+           "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
+           "region_coherence", "strand_coherence"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -203,10 +204,9 @@ def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     return F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), g.view(1, 1, -1, 1))
 
 
-def orientation_coherence(img: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
-    """img: (N, R, R) float, any units, R > 6 sigma. -> (N, R, R) in [0, 1]: (l1 - l2) / (l1 + l2) of the
-    structure tensor (central-difference gradients, outer products smoothed by a Gaussian of ``sigma``
-    texels). Parallel stripes give 1, isotropic white noise 0.24 at sigma 1.5 (0.13 at 3), a flat image 0."""
+def _structure_tensor(img: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(N, R, R) -> jxx, jyy, jxy, each (N, 1, R, R): central-difference gradients' outer products, smoothed
+    by a Gaussian of ``sigma`` texels."""
     if img.ndim != 3 or not img.is_floating_point():
         raise ValueError(f"expected a float (N, R, R) image, got {tuple(img.shape)} {img.dtype}")
     if not sigma > 0 or min(img.shape[1:]) <= 6 * sigma:
@@ -215,9 +215,43 @@ def orientation_coherence(img: torch.Tensor, sigma: float = 1.5) -> torch.Tensor
     gx = F.pad(x[..., :, 2:] - x[..., :, :-2], (1, 1, 0, 0), mode="replicate")
     gy = F.pad(x[..., 2:, :] - x[..., :-2, :], (0, 0, 1, 1), mode="replicate")
     jxx, jyy, jxy = (_gaussian_blur(a, sigma) for a in (gx * gx, gy * gy, gx * gy))
+    return jxx, jyy, jxy
+
+
+def orientation_coherence(img: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
+    """img: (N, R, R) float, any units, R > 6 sigma. -> (N, R, R) in [0, 1]: (l1 - l2) / (l1 + l2) of the
+    structure tensor (central-difference gradients, outer products smoothed by a Gaussian of ``sigma``
+    texels). Parallel stripes give 1, isotropic white noise 0.24 at sigma 1.5 (0.13 at 3), a flat image 0."""
+    jxx, jyy, jxy = _structure_tensor(img, sigma)
     # the smoothed tensor is positive semidefinite, so the root never exceeds the trace, and a flat
-    # window (both 0) gives 0 without a batch-wide threshold
-    return (torch.sqrt((jxx - jyy) ** 2 + 4 * jxy * jxy) / (jxx + jyy).clamp(min=1e-30))[:, 0]
+    # window (both 0) gives 0 without a batch-wide threshold; the root's gradient is infinite at 0, so
+    # there it is taken of a stand-in 1 (the same values, finite gradients for the coherence term)
+    disc = (jxx - jyy) ** 2 + 4 * jxy * jxy
+    root = torch.where(disc > 0, torch.sqrt(torch.where(disc > 0, disc, torch.ones_like(disc))), torch.zeros_like(disc))
+    return (root / (jxx + jyy).clamp(min=1e-30))[:, 0]
+
+
+def orientation_field(img: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
+    """img: (N, R, R) float -> (N, 2, R, R): coherence * (cos 2t, sin 2t), t the angle of the dominant
+    gradient (the doubled angle makes t and t + pi, one stripe direction, the same vector). Its norm is
+    ``orientation_coherence``; its mean over samples is long where every sample's stripes run the same
+    way (the data's hair flows from the crown: 0.61 of a possible 0.67 on the scalp)."""
+    jxx, jyy, jxy = _structure_tensor(img, sigma)
+    return torch.cat([jxx - jyy, 2 * jxy], 1) / (jxx + jyy).clamp(min=1e-30)
+
+
+def region_coherence(img: torch.Tensor, regions: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
+    """img: (N, R, R) float; regions: (R, R) uint8 labels (255 unmapped) -> (N, k) same dtype: each
+    sample's mean ``orientation_coherence`` over each region of ``region_labels`` (ascending).
+    Differentiable (the BRDF-GAN's coherence term)."""
+    if regions.shape != img.shape[1:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected (R, R) uint8 regions matching the maps {tuple(img.shape[1:])}, got "
+                         f"{tuple(regions.shape)} {regions.dtype}")
+    labels = region_labels(regions)
+    if not labels:
+        raise ValueError("expected at least one mapped region (labels other than 255), got none")
+    onehot = torch.stack([regions == lab for lab in labels]).flatten(1).to(img.dtype)  # (k, R*R)
+    return orientation_coherence(img, sigma).flatten(1) @ (onehot / onehot.sum(1, keepdim=True)).T
 
 
 def strand_coherence(phys: torch.Tensor, regions: torch.Tensor, sigma: float = 1.5) -> np.ndarray:
@@ -226,5 +260,5 @@ def strand_coherence(phys: torch.Tensor, regions: torch.Tensor, sigma: float = 1
     the normals' x component."""
     if phys.ndim != 4 or phys.shape[1] != 7 or regions.shape != phys.shape[2:]:
         raise ValueError(f"expected (N, 7, R, R) maps and (R, R) regions, got {tuple(phys.shape)} and {tuple(regions.shape)}")
-    maps = torch.stack([orientation_coherence(phys[:, :3].mean(1), sigma), orientation_coherence(phys[:, 4], sigma)], 1)
-    return np.array([[float(maps[:, c][:, regions == lab].mean()) for c in range(2)] for lab in region_labels(regions)])
+    # every sample has as many texels in a region, so the mean of the samples' region means is the region's
+    return torch.stack([region_coherence(m, regions, sigma).double().mean(0) for m in (phys[:, :3].mean(1), phys[:, 4])], 1).numpy()

@@ -21,12 +21,12 @@ import torch.nn.functional as F
 
 from .ada import augment
 from .latents import sample_z
-from .metrics import detail_link
+from .metrics import detail_link, region_coherence
 from .networks import Discriminator, GanSettings, Generator
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
-           "data_link", "link_loss"]
+           "data_link", "link_loss", "data_coherence", "coherence_loss"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,13 @@ class TrainSettings:
     # each batch to the target. 0: off (the paper)
     link_weight: float = 0.0
     link_beta: float = 0.99  # per-step decay of the running link
+    # not in the paper: weight of a term that pulls the running per-region mean orientation coherence of
+    # G's albedo luminance (``metrics.region_coherence``) to the data's. At 143.53 kimg the normals drew
+    # the scalp's strands as coherently as the data (0.74 / 0.75) but the albedo did not (0.44 / 0.67),
+    # and on the skin it was more oriented than the data's isotropic pores (0.40 / 0.29: a criss-cross
+    # grain). Drift-style like the link term. 0: off (the paper)
+    coherence_weight: float = 0.0
+    coherence_beta: float = 0.99  # per-step decay of the running coherence
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -90,6 +97,10 @@ class TrainSettings:
             raise ValueError(f"link_weight must be finite and >= 0, got {self.link_weight}")
         if not 0 <= self.link_beta < 1:
             raise ValueError(f"link_beta must be in [0, 1), got {self.link_beta}")
+        if not (self.coherence_weight >= 0 and math.isfinite(self.coherence_weight)):
+            raise ValueError(f"coherence_weight must be finite and >= 0, got {self.coherence_weight}")
+        if not 0 <= self.coherence_beta < 1:
+            raise ValueError(f"coherence_beta must be in [0, 1), got {self.coherence_beta}")
 
 
 @dataclass
@@ -123,6 +134,12 @@ class TrainState:
     # (R, R) bool: where the link is measured (the skin regions, ``metrics.detail_region``; None: the
     # whole map, where hair and the unmapped border dominate it); set by the caller, not saved
     link_mask: torch.Tensor | None = None
+    # (R, R) uint8: the UV region labels the coherence term measures per region (``data.load_regions``);
+    # set by the caller, not saved. (k,) float32: the data's per-region albedo coherence (``data_coherence``),
+    # the term's target, and G's running one; derived and restarted like the link
+    coherence_regions: torch.Tensor | None = None
+    coherence_target: torch.Tensor | None = None
+    running_coherence: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -208,7 +225,7 @@ def drift_loss(fake: torch.Tensor, running: torch.Tensor, target: torch.Tensor) 
 
 
 def update_running(running: torch.Tensor | None, moments: torch.Tensor, beta: float) -> torch.Tensor:
-    """Exponential moving average of (2, C) moments; the first batch starts it."""
+    """Exponential moving average of (2, C) moments (or (k,) coherences); the first batch starts it."""
     moments = moments.detach().float()
     return moments.clone() if running is None else running.lerp(moments, 1 - beta)
 
@@ -225,6 +242,26 @@ def link_loss(links: torch.Tensor, running: float, target: float) -> torch.Tenso
     constant: the gradient of (target - running)^2 taken through this batch (as ``drift_loss``). Its
     value is not a distance."""
     return -2 * (target - running) * links.mean()
+
+
+def _albedo_coherence(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k): per region, the coherence of the albedo's luminance. Measured in
+    network space (sRGB-encoded albedo), for the data and G alike; the card measures linear albedo."""
+    return region_coherence(x[:, :3].mean(1), regions)
+
+
+def data_coherence(data: torch.Tensor, regions: torch.Tensor, n: int = 512, chunk: int = 64) -> torch.Tensor:
+    """(k,) float32: the per-region albedo coherence of the first n data samples (the coherence term's target)."""
+    with torch.no_grad():
+        return torch.cat([_albedo_coherence(data[i : i + chunk].float(), regions)
+                          for i in range(0, min(n, len(data)), chunk)]).mean(0)
+
+
+def coherence_loss(coherence: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """-2 sum_k (target_k - running_k) * coherence[:, k].mean(), coherence: (B, k) of a fake batch, ``running``
+    held constant: the gradient of |target - running|^2 taken through this batch (as ``link_loss``). Its
+    value is not a distance."""
+    return -2 * ((target - running).to(coherence).detach() * coherence.mean(0)).sum()
 
 
 def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
@@ -267,8 +304,19 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         link = float(links.detach().mean())
         state.running_link = link if state.running_link is None else state.running_link + (1 - t.link_beta) * (link - state.running_link)
         loss_link = link_loss(links, state.running_link, state.link_target)
+    loss_coh = torch.zeros(())
+    coh_gap = None
+    if t.coherence_weight > 0:
+        if state.coherence_target is None or state.coherence_regions is None:
+            raise ValueError(f"train_step: coherence_weight {t.coherence_weight} needs state.coherence_regions and "
+                             "state.coherence_target (data_coherence of the training data)")
+        coh = _albedo_coherence(fake, state.coherence_regions)
+        state.running_coherence = update_running(state.running_coherence, coh.mean(0), t.coherence_beta)
+        loss_coh = coherence_loss(coh, state.running_coherence, state.coherence_target)
+        coh_gap = float((state.running_coherence - state.coherence_target).abs().mean())
     state.opt_G.zero_grad(set_to_none=True)
-    (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link).backward()
+    (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
+     + t.coherence_weight * loss_coh).backward()
     state.opt_G.step()
     # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
     G.requires_grad_(False)
@@ -315,6 +363,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         out["moment_drift"] = drift  # |running - target|^2, the drift term's distance
     if link is not None:
         out["link"] = link  # this batch's mean detail_link (the target: state.link_target)
+    if coh_gap is not None:
+        out["coherence_gap"] = coh_gap  # mean over regions of |running - target| albedo coherence
     return out
 
 
@@ -499,6 +549,10 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         state.moments = data_moments(data, t.batch, seed=t.seed)
     if t.link_weight > 0 and state.link_target is None:
         state.link_target = data_link(data, state.link_mask)
+    if t.coherence_weight > 0 and state.coherence_target is None:
+        if state.coherence_regions is None:
+            raise ValueError(f"train: coherence_weight {t.coherence_weight} needs state.coherence_regions (the UV region labels)")
+        state.coherence_target = data_coherence(data, state.coherence_regions)
     total = int(t.kimg * 1000)
     snap_every = max(int(t.snapshot_kimg * 1000), t.batch)
     next_snap = (state.nimg // snap_every + 1) * snap_every
