@@ -957,6 +957,7 @@ def test_orientation_field_known_values():
     # stripes that turn from sample to sample average out; the same stripes in every sample do not
     turned = torch.cat([vertical, vertical.transpose(1, 2)])
     assert orientation_field(turned)[inner].mean(0).norm(dim=0).max() < 1e-4
+    assert orientation_field(torch.cat([vertical, -vertical]))[inner].mean(0).norm(dim=0).min() > 0.999
     with pytest.raises(ValueError, match=r"expected a float \(N, R, R\) image"):
         orientation_field(vertical[0])
 
