@@ -230,11 +230,15 @@ def update_running(running: torch.Tensor | None, moments: torch.Tensor, beta: fl
     return moments.clone() if running is None else running.lerp(moments, 1 - beta)
 
 
+def _data_mean(measure: Callable[[torch.Tensor], torch.Tensor], data: torch.Tensor, n: int, chunk: int) -> torch.Tensor:
+    """The mean over the first n data samples of ``measure`` ((B, 7, R, R) -> (B, ...)), in chunks."""
+    with torch.no_grad():
+        return torch.cat([measure(data[i : i + chunk].float()) for i in range(0, min(n, len(data)), chunk)]).mean(0)
+
+
 def data_link(data: torch.Tensor, mask: torch.Tensor | None = None, n: int = 512, chunk: int = 64) -> float:
     """The mean ``metrics.detail_link`` of the first n data samples (the link term's target)."""
-    with torch.no_grad():
-        return float(torch.cat([detail_link(data[i : i + chunk].float(), mask)
-                                for i in range(0, min(n, len(data)), chunk)]).mean())
+    return float(_data_mean(lambda x: detail_link(x, mask), data, n, chunk))
 
 
 def link_loss(links: torch.Tensor, running: float, target: float) -> torch.Tensor:
@@ -252,9 +256,7 @@ def _albedo_coherence(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
 
 def data_coherence(data: torch.Tensor, regions: torch.Tensor, n: int = 512, chunk: int = 64) -> torch.Tensor:
     """(k,) float32: the per-region albedo coherence of the first n data samples (the coherence term's target)."""
-    with torch.no_grad():
-        return torch.cat([_albedo_coherence(data[i : i + chunk].float(), regions)
-                          for i in range(0, min(n, len(data)), chunk)]).mean(0)
+    return _data_mean(lambda x: _albedo_coherence(x, regions), data, n, chunk)
 
 
 def coherence_loss(coherence: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
