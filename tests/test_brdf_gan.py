@@ -798,25 +798,34 @@ def test_a_stop_signal_ends_training_after_a_step_and_saves_a_checkpoint(dataset
     """A background job ignores Ctrl-C, so `kill` (SIGTERM) is how a long run is stopped; a first Ctrl-C
     (SIGINT) does the same. Either must end at a step boundary and keep the work, not die with the last
     snapshot's."""
+    import os
+    import re
     import signal
     import subprocess
     import sys
-    import time
 
     run = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "fitme_cli", "train", str(dataset_dir), "-o", str(run),
                              "--resolution", "16", "--branch-resolution", "8", "--channel-base", "64",
                              "--channel-max", "16", "--kimg", "100", "--snapshot-kimg", "50", "--threads", "1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            # as from a terminal: a job started in the background (nohup, `&`) inherits SIGINT
+                            # ignored, and training then leaves it ignored by design (a fresh-clone run so failed)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    seen = b""
     try:
-        for line in proc.stderr:  # the line printed just before the first step
-            if "parameters" in line:
+        # signal once the progress bar counts images: steps have run, so the handlers are in place (a fixed
+        # sleep assumed a machine fast enough to get there within it)
+        while not re.search(rb"\| *[1-9][0-9]*/[0-9]+ \[", seen):
+            chunk = os.read(proc.stderr.fileno(), 4096)
+            if not chunk:  # it exited: the asserts below show why
                 break
-        time.sleep(2.0)
+            seen += chunk
         proc.send_signal(getattr(signal, sig))
-        _, err = proc.communicate(timeout=120)
+        _, rest = proc.communicate(timeout=120)
     finally:
         proc.kill()
+    err = (seen + rest).decode(errors="replace")
     assert proc.returncode == 128 + getattr(signal, sig), err[-2000:]
     assert f"stopped by {sig}: checkpoint saved" in err
     state = load_checkpoint(run / "checkpoint.safetensors")  # no snapshot was due: this is the stop's

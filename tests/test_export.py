@@ -180,10 +180,20 @@ def test_maps_have_no_black_holes_even_when_the_source_does(exported, avatar, sh
 
 
 def test_u_seam_is_continuous_after_upsampling(exported):
+    import cv2
+
     a = exported.maps.albedo
-    across = np.abs(a[:, 0] - a[:, -1]).mean()  # neighbours on the head, across the back seam
-    inside = np.abs(a[:, 1:] - a[:, :-1]).mean()  # neighbouring columns anywhere
-    assert across < 1.5 * inside
+    d = a[:, 0] - a[:, -1]  # neighbours on the head, across the back seam
+    across = np.abs(d).mean()
+    k = 16  # a step between neighbouring columns in the same texture (scalp and neck) on either side
+    local = 0.5 * (np.abs(a[:, 1:k] - a[:, : k - 1]).mean() + np.abs(a[:, -k + 1 :] - a[:, -k:-1]).mean())
+    # blend_u_seam matches the edges' vertically smoothed colours, not single strands: strands that do not
+    # line up across the seam stay (the 151 kimg G's scalp, 2026-11-26: across 1.46x the local step, 3.19x
+    # without the blend), while the smoothed difference, what reads as a seam, drops to 0.39x (2.46x without).
+    # The old bound, 1.5x the mean step over the whole map (mostly smooth skin), failed on that scalp: 1.63x
+    low = cv2.GaussianBlur(d.reshape(d.shape[0], -1), (1, 0), 0, sigmaY=4.0, borderType=cv2.BORDER_REFLECT)
+    assert across < 2.0 * local, (across, local)
+    assert np.abs(low).mean() < 0.75 * local, (np.abs(low).mean(), local)
 
 
 def test_exr_maps_read_back_bit_exactly(exported):
