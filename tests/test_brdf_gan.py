@@ -584,7 +584,7 @@ def test_coherence_weight_moves_the_fakes_coherence(tmp_path):
 
     def run(weight, target=0.95):
         state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, coherence_weight=weight))
-        state.coherence_regions, state.coherence_target = regions, torch.tensor([target, target])
+        state.regions, state.coherence_target = regions, torch.tensor([target, target])
         torch.manual_seed(0)
         out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
                for i in range(30)]
@@ -598,9 +598,9 @@ def test_coherence_weight_moves_the_fakes_coherence(tmp_path):
     assert on > off + 0.04 and down < off - 0.2, (on, off, down)  # 0.74 and 0.24 against 0.66 measured
     assert "coherence_gap" not in l_off[0] and 0 <= l_on[-1]["coherence_gap"] <= 1
     state = new_state(TINY, TrainSettings(batch=8, kimg=1, coherence_weight=1.0))
-    with pytest.raises(ValueError, match="needs state.coherence_regions and state.coherence_target"):
+    with pytest.raises(ValueError, match="needs state.regions and state.coherence_target"):
         train_step(state, data[:8])
-    with pytest.raises(ValueError, match="needs state.coherence_regions"):
+    with pytest.raises(ValueError, match="needs state.regions"):
         from fitme_cli.reflectance.gan.train import train as train_loop
 
         train_loop(state, data, tmp_path, progress=False)
@@ -608,6 +608,117 @@ def test_coherence_weight_moves_the_fakes_coherence(tmp_path):
         TrainSettings(coherence_weight=-1.0)
     with pytest.raises(ValueError, match="coherence_beta must be in"):
         TrainSettings(coherence_beta=1.0)
+
+
+def _band_energy_ref(x: torch.Tensor, regions: torch.Tensor, levels: int) -> torch.Tensor:
+    """The slow, obvious region_band_energy: a loop over regions, bands and channels with boolean masks."""
+    from fitme_cli.reflectance.gan.metrics import _bandpass, region_labels
+
+    bands = _bandpass(x, levels)
+    out = torch.zeros(len(x), len(region_labels(regions)), levels, x.shape[1], dtype=x.dtype)
+    for j, lab in enumerate(region_labels(regions)):
+        m = regions == lab
+        for i, b in enumerate(bands):
+            for c in range(x.shape[1]):
+                out[:, j, i, c] = b[:, c][:, m].square().mean(1).sqrt()
+    return out
+
+
+def test_region_band_energy_matches_reference_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import reflectance_features, region_band_energy
+
+    r = 16
+    regions = _two_regions(r)
+    x = torch.randn(3, 2, r, r, generator=torch.Generator().manual_seed(0))
+    e = region_band_energy(x, regions, levels=3)
+    assert e.shape == (3, 2, 3, 2)
+    torch.testing.assert_close(e, _band_energy_ref(x, regions, 3))
+    # a texel checkerboard of amplitude a is all finest band (its 2x2 average is 0): RMS a there, 0 coarser
+    check = 0.3 * (-1.0) ** (torch.arange(r)[:, None] + torch.arange(r)[None, :]).float()
+    e = region_band_energy(check.expand(1, 1, r, r), regions, levels=2)
+    torch.testing.assert_close(e[0, :, 0, 0], torch.tensor([0.3, 0.3]))
+    assert e[0, :, 1].abs().max() < 1e-6
+    # reflectance_features is the region means then all 3 bands of every channel, per region
+    phys = torch.rand(2, 7, r, r, generator=torch.Generator().manual_seed(1))
+    f = torch.from_numpy(reflectance_features(phys, regions)).view(2, 2, 28)
+    ref = _band_energy_ref(phys, regions, 3)
+    for j, lab in enumerate((2, 7)):
+        torch.testing.assert_close(f[:, j, :7].float(), phys[:, :, regions == lab].mean(2))
+        torch.testing.assert_close(f[:, j, 7:].float(), ref[:, j].flatten(1))
+    g64 = torch.randn(2, 1, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(2), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: region_band_energy(t, regions, 2), (g64,))
+    flat = torch.full((1, 3, r, r), 0.5, requires_grad=True)
+    out = region_band_energy(flat, regions, 2)
+    out.sum().backward()
+    assert out.abs().max() == 0 and torch.isfinite(flat.grad).all()  # a flat map: no energy, no NaN gradient
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps and \(R, R\) uint8 regions matching them, got \(3, 16, 16\)"):
+        region_band_energy(x[:, 0], regions)
+    with pytest.raises(ValueError, match="levels must be 1, 2 or 3, got 4"):
+        region_band_energy(x, regions, levels=4)
+    with pytest.raises(ValueError, match="at least one mapped region"):
+        region_band_energy(x, torch.full((r, r), 255, dtype=torch.uint8))
+
+
+def test_band_loss_pulls_each_entry_by_its_relative_running_gap():
+    from fitme_cli.reflectance.gan.train import _albedo_bands, band_loss, data_band
+
+    x = (1.6 * torch.rand(2, 7, 16, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) - 0.8).requires_grad_()
+    regions = _two_regions()
+    b = _albedo_bands(x, regions, 1)  # (2, 2 regions x 1 band x 3 channels)
+    assert b.shape == (2, 6)
+    torch.testing.assert_close(data_band(x.detach(), regions, 1, chunk=1), b.detach().mean(0).float())  # float32, as the data
+    target = torch.full((6,), 0.5, dtype=torch.float64)
+    running = torch.tensor([0.25, 0.25, 0.25, 1.0, 1.0, 1.0], dtype=torch.float64)  # region 2 too faint, 7 too strong
+    # the gradient of |running / target - 1|^2 through the batch: 2 (running - target) / target^2 per entry
+    want = (2 * (running - target) / target**2 * b.mean(0)).sum()
+    assert band_loss(b, running, target).item() == pytest.approx(want.item())
+    (grad,) = torch.autograd.grad(band_loss(b, running, target), x)
+    with torch.no_grad():
+        moved = _albedo_bands(x - 0.05 * grad / grad.abs().max(), regions, 1).mean(0) / b.mean(0) - 1
+    assert (moved[:3] > 0.02).all() and (moved[3:] < -0.02).all(), moved  # up where too faint, down where too strong
+    (grad,) = torch.autograd.grad(band_loss(_albedo_bands(x, regions, 1), target, target), x)
+    assert grad.abs().max() == 0  # on target: no pull, whatever this batch's own energy
+
+
+def test_band_weight_moves_the_fakes_fine_detail(tmp_path):
+    """Same seed, same steps: with the band term G's albedo grain grows toward a high target and fades toward a
+    low one; it needs its regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _albedo_bands
+
+    data = _tiny_data()
+    regions = _two_regions()
+
+    def run(weight, scale):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, band_weight=weight, band_levels=1))
+        state.regions = regions
+        with torch.no_grad():
+            base = _albedo_bands(state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat(), regions, 1).mean(0)
+        state.band_target = base * scale
+        torch.manual_seed(0)
+        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+               for i in range(30)]
+        with torch.no_grad():
+            fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
+        return float((_albedo_bands(fake, regions, 1).mean(0) / base).mean()), out
+
+    off, l_off = run(0.0, 1.0)
+    up, l_up = run(5.0, 6.0)  # without the term the grain grows about 3x in these steps
+    down, _ = run(5.0, 0.5)
+    assert up > off * 1.2 and down < off / 1.2, (up, off, down)  # 40.8 and 0.12 against 2.94 measured
+    assert "band_gap" not in l_off[0] and l_up[0]["band_gap"] == pytest.approx(5 / 6, abs=0.05)
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, band_weight=1.0))
+    with pytest.raises(ValueError, match="needs state.regions and state.band_target"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match="band_weight 1.0 needs state.regions"):
+        from fitme_cli.reflectance.gan.train import train as train_loop
+
+        train_loop(state, data, tmp_path, progress=False)
+    with pytest.raises(ValueError, match="band_weight must be finite and >= 0, got -1.0"):
+        TrainSettings(band_weight=-1.0)
+    with pytest.raises(ValueError, match="band_beta must be in"):
+        TrainSettings(band_beta=1.0)
+    with pytest.raises(ValueError, match="band_levels must be 1, 2 or 3, got 0"):
+        TrainSettings(band_levels=0)
 
 
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
@@ -751,7 +862,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
-                                  "--link-weight", "20", "--coherence-weight", "20", "--threads", "1"])
+                                  "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--threads", "1"])
     assert r.exit_code == 0, r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
@@ -764,6 +875,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert lines[-1]["moment_drift"] > 0 and "moment_drift" not in lines[0]
     assert state.train.link_weight == 20.0 and -1 <= lines[-1]["link"] <= 1 and "link" not in lines[0]
     assert state.train.coherence_weight == 20.0 and 0 <= lines[-1]["coherence_gap"] <= 1 and "coherence_gap" not in lines[0]
+    assert state.train.band_weight == 5.0 and state.train.band_levels == 3
+    assert lines[-1]["band_gap"] >= 0 and "band_gap" not in lines[0]
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output
@@ -868,9 +981,11 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     regions = torch.from_numpy(cv2.resize(region_uv, (64, 64), interpolation=cv2.INTER_NEAREST))
     m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
     assert set(m) == {"per_channel", "std_ratio_by_scale", "frechet_reflectance_features", "region_albedo_q10_q50_q90",
-                      "modality_consistency", "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step"}
+                      "albedo_band_ratio_by_region", "modality_consistency", "strand_coherence_albedo_normal_x",
+                      "interpolation_max_over_mean_step"}
     coh = m["strand_coherence_albedo_normal_x"]
-    assert set(coh) == set(m["region_albedo_q10_q50_q90"])
+    assert set(coh) == set(m["region_albedo_q10_q50_q90"]) == set(m["albedo_band_ratio_by_region"])
+    assert all(len(v) == 3 and all(np.isfinite(b) and b > 0 for b in v) for v in m["albedo_band_ratio_by_region"].values())
     assert all(len(v) == 2 and all(0 <= c <= 1 for c in v) for r in coh.values() for v in r.values())
     assert all(set(r) == {"between", "coarse", "fine"} and all(np.isfinite(v) and v >= 0 for v in r.values())
                for r in m["std_ratio_by_scale"].values()) and len(m["std_ratio_by_scale"]) == 7
@@ -1001,7 +1116,7 @@ def test_std_parts_known_values_and_bad_input():
 
 
 def test_feature_parts_and_region_albedo_known_values():
-    from fitme_cli.reflectance.gan.metrics import feature_parts, reflectance_features, region_albedo
+    from fitme_cli.reflectance.gan.metrics import feature_parts, reflectance_features, region_albedo, region_albedo_bands
 
     # two regions (left half 0, right half 3); albedo (0.1, 0.2, 0.3) left and 0.6 grey right, flat
     phys = torch.zeros(2, 7, 8, 8)
@@ -1015,6 +1130,9 @@ def test_feature_parts_and_region_albedo_known_values():
     assert tone.shape == (2, 14) and detail.shape == (2, 42)
     np.testing.assert_allclose(region_albedo(f), [[0.2, 0.6], [0.1, 0.3]], atol=1e-6)
     assert detail.max() > 0.01  # the edge between the halves is detail
+    bands = region_albedo_bands(f)
+    assert bands.shape == (2, 2, 3)
+    np.testing.assert_allclose(bands[1], bands[0] * 0.5, rtol=1e-5)  # sample 1 is sample 0's albedo halved
     _, flat = feature_parts(reflectance_features(torch.full((1, 7, 8, 8), 0.4), regions))
     assert np.abs(flat).max() < 1e-6  # a constant map has none
     with pytest.raises(ValueError, match="28"):

@@ -43,7 +43,7 @@ def _stop_requests():
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
-                "coherence_weight")
+                "coherence_weight", "band_weight", "band_levels")
 
 
 @click.command("train")
@@ -83,6 +83,11 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--coherence-weight", type=click.FloatRange(min=0),
               help="Pull the running per-region orientation coherence of G's albedo (strands on the scalp, isotropic pores "
                    "on the skin) to the data's (not in the paper; may change on --resume). [0]")
+@click.option("--band-weight", type=click.FloatRange(min=0),
+              help="Pull the running per-region RMS of the two finest bands of G's albedo (pores, grain) to the data's "
+                   "(not in the paper; may change on --resume). [0]")
+@click.option("--band-levels", type=click.IntRange(1, 3),
+              help="How many of the finest bands --band-weight pulls: 1-2, 2-4, 4-8 texels (may change on --resume). [2]")
 @click.option("--seed", type=int, help="[0]")
 @click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
@@ -150,7 +155,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
-                      "moment_drift_weight", "link_weight", "coherence_weight")
+                      "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:
@@ -207,8 +212,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         click.echo("the checkpoint's mean image was trained (before it became fixed): reset to the data mean", err=True)
     if state.train.link_weight > 0:
         state.link_mask = detail_region(load_regions(gan_settings.resolution))  # where --link-weight measures
-    if state.train.coherence_weight > 0:
-        state.coherence_regions = load_regions(gan_settings.resolution)
+    if state.train.coherence_weight > 0 or state.train.band_weight > 0:
+        state.regions = load_regions(gan_settings.resolution)  # where --coherence-weight and --band-weight measure
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
                f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
     with _stop_requests() as stops:

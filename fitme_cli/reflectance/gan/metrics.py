@@ -16,8 +16,9 @@
 - ``orientation_coherence`` / ``strand_coherence``: how much one direction dominates the local
   gradients (structure tensor): strands and wrinkles near 1, isotropic grain low. The number for "hair
   is grain, not strands" that the band energies cannot see (both carry the same energy).
-- ``feature_parts`` and ``region_albedo``: views of ``reflectance_features`` that say where a Frechet
-  distance comes from (tone per region vs detail) and how each region's albedo is distributed.
+- ``feature_parts``, ``region_albedo`` and ``region_albedo_bands``: views of ``reflectance_features`` that
+  say where a Frechet distance comes from (tone per region vs detail), how each region's albedo is
+  distributed, and how much grain each region's albedo has at each scale.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import torch.nn.functional as F
 __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_labels", "reflectance_features",
            "feature_parts", "region_albedo", "frechet_distance", "detail_region", "detail_link",
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
-           "region_coherence", "strand_coherence"]
+           "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -107,18 +108,39 @@ def detail_region(regions: torch.Tensor) -> torch.Tensor:
     return mask
 
 
+def _region_weights(regions: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(R, R) uint8 labels -> (k, R*R) in ``like``'s dtype: each region of ``region_labels`` as weights summing to 1."""
+    labels = region_labels(regions)
+    if not labels:
+        raise ValueError("expected at least one mapped region (labels other than 255), got none")
+    onehot = torch.stack([regions == lab for lab in labels]).flatten(1).to(like)
+    return onehot / onehot.sum(1, keepdim=True)
+
+
+def region_band_energy(x: torch.Tensor, regions: torch.Tensor, levels: int = 3) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, levels, C)
+    same dtype: the RMS of each Laplacian band (``_bandpass``, finest first) over each region of
+    ``region_labels``. Differentiable (the BRDF-GAN's band term)."""
+    if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    if not 1 <= levels <= 3:
+        raise ValueError(f"levels must be 1, 2 or 3, got {levels}")
+    w = _region_weights(regions, x)
+    bands = torch.stack(_bandpass(x, levels), 1)  # (N, L, C, R, R)
+    energy = bands.square().flatten(3) @ w.T  # (N, L, C, k)
+    # the root's gradient is infinite at 0 (a flat region): there it is taken of a stand-in 1, as in
+    # ``orientation_coherence``
+    flat = energy <= 0
+    return (torch.where(flat, torch.ones_like(energy), energy).sqrt() * ~flat).permute(0, 3, 1, 2)
+
+
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:
     """(N, 7, R, R) physical maps, (R, R) uint8 region labels (255 unmapped) -> (N, 224) float64."""
     x = phys.float()
-    feats = []
-    bands = _bandpass(x)
-    for lab in region_labels(regions):
-        m = (regions == lab).float()
-        area = m.sum().clamp(min=1)
-        feats.append((x * m).sum(dim=(2, 3)) / area)
-        for b in bands:
-            feats.append(((b.square() * m).sum(dim=(2, 3)) / area).sqrt())
-    return torch.cat(feats, 1).double().numpy()
+    means = (x.flatten(2) @ _region_weights(regions, x).T).transpose(1, 2)  # (N, k, 7)
+    bands = region_band_energy(x, regions).flatten(2)  # (N, k, 21): band 0's 7 channels, then 1's, 2's
+    return torch.cat([means, bands], 2).flatten(1).double().numpy()
 
 
 def feature_parts(feats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,6 +156,13 @@ def region_albedo(feats: np.ndarray) -> np.ndarray:
     region, in ``region_labels`` order."""
     tone, _ = feature_parts(feats)
     return tone.reshape(len(feats), -1, 7)[:, :, :3].mean(2)
+
+
+def region_albedo_bands(feats: np.ndarray) -> np.ndarray:
+    """(N, 28 k) reflectance features -> (N, k, 3) each sample's linear albedo band RMS (mean of r, g, b) per
+    region of ``region_labels`` and band (finest first)."""
+    _, detail = feature_parts(feats)
+    return detail.reshape(len(feats), -1, 3, 7)[:, :, :, :3].mean(3)
 
 
 def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -247,11 +276,7 @@ def region_coherence(img: torch.Tensor, regions: torch.Tensor, sigma: float = 1.
     if regions.shape != img.shape[1:] or regions.dtype != torch.uint8:
         raise ValueError(f"expected (R, R) uint8 regions matching the maps {tuple(img.shape[1:])}, got "
                          f"{tuple(regions.shape)} {regions.dtype}")
-    labels = region_labels(regions)
-    if not labels:
-        raise ValueError("expected at least one mapped region (labels other than 255), got none")
-    onehot = torch.stack([regions == lab for lab in labels]).flatten(1).to(img.dtype)  # (k, R*R)
-    return orientation_coherence(img, sigma).flatten(1) @ (onehot / onehot.sum(1, keepdim=True)).T
+    return orientation_coherence(img, sigma).flatten(1) @ _region_weights(regions, img).T
 
 
 def strand_coherence(phys: torch.Tensor, regions: torch.Tensor, sigma: float = 1.5) -> np.ndarray:

@@ -16,7 +16,7 @@ import torch
 from .data import load_dataset, load_regions
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
-                      modality_consistency, reflectance_features, region_albedo, region_labels, std_parts,
+                      modality_consistency, reflectance_features, region_albedo, region_albedo_bands, region_labels, std_parts,
                       strand_coherence)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
@@ -131,6 +131,9 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
     tones = {"gan": region_albedo(gan_feats), "data": region_albedo(data_feats)}
     region_tone = {_region_name(lab): {name: [round(float(v), 4) for v in np.quantile(tones[name][:, j], q)]
                                        for name in ("data", "gan")} for j, lab in enumerate(region_labels(regions))}
+    # where the albedo's grain is too faint or too strong: per region and band (finest first), G's mean RMS
+    # over the data's (mean of r, g, b)
+    band_ratio = region_albedo_bands(gan_feats).mean(0) / np.maximum(region_albedo_bands(data_feats).mean(0), 1e-12)
     with torch.no_grad():
         ratios = [interpolation_smoothness(G.synthesis(w, noise_mode="const").cat())
                   for w in _walks(G, 8, 16, seed + 1, truncation_psi)]
@@ -141,6 +144,8 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
                                          "samples": [len(fg), len(fb)],
                                          "by_part": by_part},
         "region_albedo_q10_q50_q90": region_tone,
+        "albedo_band_ratio_by_region": {_region_name(lab): [round(float(v), 3) for v in band_ratio[j]]
+                                        for j, lab in enumerate(region_labels(regions))},
         "modality_consistency": {"gan_matched": round(gan_cons[0], 3), "gan_mismatched": round(gan_cons[1], 3),
                                  "data_matched": round(data_cons[0], 3), "data_mismatched": round(data_cons[1], 3)},
         # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region

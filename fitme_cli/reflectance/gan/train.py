@@ -19,14 +19,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ...ops.srgb import srgb_to_linear
 from .ada import augment
 from .latents import sample_z
-from .metrics import detail_link, region_coherence
+from .metrics import detail_link, region_band_energy, region_coherence
 from .networks import Discriminator, GanSettings, Generator
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
-           "data_link", "link_loss", "data_coherence", "coherence_loss"]
+           "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss"]
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,15 @@ class TrainSettings:
     # grain). Drift-style like the link term. 0: off (the paper)
     coherence_weight: float = 0.0
     coherence_beta: float = 0.99  # per-step decay of the running coherence
+    # not in the paper: weight of a term that pulls the running per-region RMS of the albedo's finest
+    # Laplacian bands (``metrics.region_band_energy``, linear albedo) to the data's, each relative to
+    # its target. At 151.01 kimg the albedo's grain below a 9-texel window was 0.88-0.92 of the data's
+    # over the whole map (143.53: 0.96-1.01), but per region it was off both ways: the finest band 0.8 on
+    # the scalp, 0.65 on the brows and 0.7 on the lips, 1.05-1.2 on the cheeks and 1.2-1.4 on the nose and
+    # neck (docs/brdf_gan.md). Drift-style like the link and coherence terms. 0: off (the paper)
+    band_weight: float = 0.0
+    band_beta: float = 0.99  # per-step decay of the running band energies
+    band_levels: int = 2  # how many of the finest bands are pulled: 1-2, 2-4, 4-8 texels
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -101,6 +111,12 @@ class TrainSettings:
             raise ValueError(f"coherence_weight must be finite and >= 0, got {self.coherence_weight}")
         if not 0 <= self.coherence_beta < 1:
             raise ValueError(f"coherence_beta must be in [0, 1), got {self.coherence_beta}")
+        if not (self.band_weight >= 0 and math.isfinite(self.band_weight)):
+            raise ValueError(f"band_weight must be finite and >= 0, got {self.band_weight}")
+        if not 0 <= self.band_beta < 1:
+            raise ValueError(f"band_beta must be in [0, 1), got {self.band_beta}")
+        if not 1 <= self.band_levels <= 3:
+            raise ValueError(f"band_levels must be 1, 2 or 3, got {self.band_levels}")
 
 
 @dataclass
@@ -134,12 +150,16 @@ class TrainState:
     # (R, R) bool: where the link is measured (the skin regions, ``metrics.detail_region``; None: the
     # whole map, where hair and the unmapped border dominate it); set by the caller, not saved
     link_mask: torch.Tensor | None = None
-    # (R, R) uint8: the UV region labels the coherence term measures per region (``data.load_regions``);
-    # set by the caller, not saved. (k,) float32: the data's per-region albedo coherence (``data_coherence``),
-    # the term's target, and G's running one; derived and restarted like the link
-    coherence_regions: torch.Tensor | None = None
+    # (R, R) uint8: the UV region labels the coherence and band terms measure per region
+    # (``data.load_regions``); set by the caller, not saved. (k,) float32: the data's per-region albedo
+    # coherence (``data_coherence``), the term's target, and G's running one; derived and restarted like the link
+    regions: torch.Tensor | None = None
     coherence_target: torch.Tensor | None = None
     running_coherence: torch.Tensor | None = None
+    # (k * band_levels * 3,) float32: the data's per-region albedo band RMS (``data_band``), the band
+    # term's target, and G's running one; derived and restarted like the link
+    band_target: torch.Tensor | None = None
+    running_band: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -266,6 +286,27 @@ def coherence_loss(coherence: torch.Tensor, running: torch.Tensor, target: torch
     return -2 * ((target - running).to(coherence).detach() * coherence.mean(0)).sum()
 
 
+def _albedo_bands(x: torch.Tensor, regions: torch.Tensor, levels: int) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k * levels * 3): per region, the RMS of the linear albedo's ``levels``
+    finest Laplacian bands, per channel. Linear, as the card and the renderer see it: at 151.01 kimg the lips'
+    finest band was 0.93 of the data's sRGB-encoded but 0.70 linear (G's and the data's tones differ, so the
+    encoding's slope does too)."""
+    return region_band_energy(srgb_to_linear(((x[:, :3] + 1) / 2).clamp(0, 1)), regions, levels).flatten(1)
+
+
+def data_band(data: torch.Tensor, regions: torch.Tensor, levels: int, n: int = 512, chunk: int = 64) -> torch.Tensor:
+    """(k * levels * 3,) float32: the per-region albedo band RMS of the first n data samples (the band term's target)."""
+    return _data_mean(lambda x: _albedo_bands(x, regions, levels), data, n, chunk)
+
+
+def band_loss(bands: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """bands: (B, m) of a fake batch (``_albedo_bands``), running and target (m,): ``coherence_loss`` of each
+    entry relative to its target, the gradient of |running / target - 1|^2 taken through this batch. Relative,
+    because the bands' RMS spans an order of magnitude between the scalp and the cheeks."""
+    scale = target.to(bands).detach()
+    return coherence_loss(bands / scale, running.to(bands) / scale, torch.ones_like(scale))
+
+
 def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     t = state.train
     return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
@@ -309,16 +350,26 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     loss_coh = torch.zeros(())
     coh_gap = None
     if t.coherence_weight > 0:
-        if state.coherence_target is None or state.coherence_regions is None:
-            raise ValueError(f"train_step: coherence_weight {t.coherence_weight} needs state.coherence_regions and "
+        if state.coherence_target is None or state.regions is None:
+            raise ValueError(f"train_step: coherence_weight {t.coherence_weight} needs state.regions and "
                              "state.coherence_target (data_coherence of the training data)")
-        coh = _albedo_coherence(fake, state.coherence_regions)
+        coh = _albedo_coherence(fake, state.regions)
         state.running_coherence = update_running(state.running_coherence, coh.mean(0), t.coherence_beta)
         loss_coh = coherence_loss(coh, state.running_coherence, state.coherence_target)
         coh_gap = float((state.running_coherence - state.coherence_target).abs().mean())
+    loss_band = torch.zeros(())
+    band_gap = None
+    if t.band_weight > 0:
+        if state.band_target is None or state.regions is None:
+            raise ValueError(f"train_step: band_weight {t.band_weight} needs state.regions and state.band_target "
+                             "(data_band of the training data)")
+        bands = _albedo_bands(fake, state.regions, t.band_levels)
+        state.running_band = update_running(state.running_band, bands.mean(0), t.band_beta)
+        loss_band = band_loss(bands, state.running_band, state.band_target)
+        band_gap = float((state.running_band / state.band_target - 1).abs().mean())
     state.opt_G.zero_grad(set_to_none=True)
     (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
-     + t.coherence_weight * loss_coh).backward()
+     + t.coherence_weight * loss_coh + t.band_weight * loss_band).backward()
     state.opt_G.step()
     # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
     G.requires_grad_(False)
@@ -367,6 +418,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         out["link"] = link  # this batch's mean detail_link (the target: state.link_target)
     if coh_gap is not None:
         out["coherence_gap"] = coh_gap  # mean over regions of |running - target| albedo coherence
+    if band_gap is not None:
+        out["band_gap"] = band_gap  # mean over regions, bands and channels of |running / target - 1|
     return out
 
 
@@ -552,9 +605,13 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
     if t.link_weight > 0 and state.link_target is None:
         state.link_target = data_link(data, state.link_mask)
     if t.coherence_weight > 0 and state.coherence_target is None:
-        if state.coherence_regions is None:
-            raise ValueError(f"train: coherence_weight {t.coherence_weight} needs state.coherence_regions (the UV region labels)")
-        state.coherence_target = data_coherence(data, state.coherence_regions)
+        if state.regions is None:
+            raise ValueError(f"train: coherence_weight {t.coherence_weight} needs state.regions (the UV region labels)")
+        state.coherence_target = data_coherence(data, state.regions)
+    if t.band_weight > 0 and state.band_target is None:
+        if state.regions is None:
+            raise ValueError(f"train: band_weight {t.band_weight} needs state.regions (the UV region labels)")
+        state.band_target = data_band(data, state.regions, t.band_levels)
     total = int(t.kimg * 1000)
     snap_every = max(int(t.snapshot_kimg * 1000), t.batch)
     next_snap = (state.nimg // snap_every + 1) * snap_every
