@@ -26,7 +26,7 @@ from ..maps import ReflectanceMaps
 from .ops import bias_lrelu, conv_down2x, downsample2x, modulated_conv2d, upsample2x
 
 __all__ = ["MODALITIES", "GanSettings", "GanImages", "ReflectanceMaps", "MappingNetwork", "SynthesisNetwork",
-           "Generator", "Discriminator", "encode_maps", "decode_maps"]
+           "Generator", "Discriminator", "encode_maps", "decode_maps", "decode_albedo"]
 
 MODALITIES = (("albedo", 3), ("specular", 1), ("normals", 3))  # name, channels; in this order in the 7-ch image
 N_CHANNELS = sum(c for _, c in MODALITIES)
@@ -90,9 +90,14 @@ class GanImages:
         return GanImages(x[:, 0:3], x[:, 3:4], x[:, 4:7])
 
 
+def decode_albedo(albedo: torch.Tensor) -> torch.Tensor:
+    """(N, 3, R, R) network-space albedo (sRGB-encoded, [-1, 1]) -> linear albedo in [0, 1] (differentiable)."""
+    return srgb_to_linear(((albedo + 1) / 2).clamp(0, 1))
+
+
 def decode_maps(images: GanImages, s: GanSettings) -> ReflectanceMaps:
     """Network space -> physical maps (differentiable; values clamped into range)."""
-    albedo = srgb_to_linear(((images.albedo + 1) / 2).clamp(0, 1))
+    albedo = decode_albedo(images.albedo)
     specular = (images.specular * s.specular_scale + s.specular_offset).clamp(0, 1)
     n = images.normals * s.normal_scale
     # a generator may output z <= 0 early in training; keep the normal in the outward hemisphere

@@ -19,11 +19,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ...ops.srgb import srgb_to_linear
 from .ada import augment
 from .latents import sample_z
 from .metrics import detail_link, region_band_energy, region_coherence
-from .networks import Discriminator, GanSettings, Generator
+from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
@@ -291,7 +290,7 @@ def _albedo_bands(x: torch.Tensor, regions: torch.Tensor, levels: int) -> torch.
     finest Laplacian bands, per channel. Linear, as the card and the renderer see it: at 151.01 kimg the lips'
     finest band was 0.93 of the data's sRGB-encoded but 0.70 linear (G's and the data's tones differ, so the
     encoding's slope does too)."""
-    return region_band_energy(srgb_to_linear(((x[:, :3] + 1) / 2).clamp(0, 1)), regions, levels).flatten(1)
+    return region_band_energy(decode_albedo(x[:, :3]), regions, levels).flatten(1)
 
 
 def data_band(data: torch.Tensor, regions: torch.Tensor, levels: int, n: int = 512, chunk: int = 64) -> torch.Tensor:
