@@ -721,6 +721,161 @@ def test_band_weight_moves_the_fakes_fine_detail(tmp_path):
         TrainSettings(band_levels=0)
 
 
+def _spectrum_ref(img: torch.Tensor, regions: torch.Tensor, patch: int) -> torch.Tensor:
+    """The slow, obvious region_spectrum: numpy, a loop over regions and windows, the whole frequency plane
+    normalised, then folded to rfft2's half plane (interior columns stand for two conjugate bins)."""
+    from fitme_cli.reflectance.gan.metrics import _bandpass, region_labels
+
+    band = _bandpass(img[:, None].double(), 1)[0][:, 0].numpy()
+    hann = np.hanning(patch)
+    win = np.outer(hann, hann)
+    r = img.shape[-1]
+    out = np.zeros((len(img), len(region_labels(regions)), patch, patch // 2 + 1))
+    for j, lab in enumerate(region_labels(regions)):
+        m = (regions == lab).numpy()
+        for i in range(len(img)):
+            acc, n = np.zeros((patch, patch)), 0
+            for y in range(0, r - patch + 1, patch // 2):
+                for x in range(0, r - patch + 1, patch // 2):
+                    if m[y : y + patch, x : x + patch].all():
+                        p = band[i, y : y + patch, x : x + patch]
+                        acc += np.abs(np.fft.fft2((p - p.mean()) * win)) ** 2
+                        n += 1
+            if n and acc.sum() > 0:
+                full = acc / acc.sum()
+                half = full[:, : patch // 2 + 1].copy()
+                half[:, 1 : patch // 2] *= 2
+                out[i, j] = half
+    return torch.from_numpy(out)
+
+
+def test_region_spectrum_matches_reference_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import region_spectrum, spectrum_distance, spectrum_excess_peak
+
+    r = 32
+    regions = torch.full((r, r), 255, dtype=torch.uint8)
+    regions[:, :20], regions[4:28, 20:] = 2, 7  # 7 is 12 wide: no whole 16^2 window at patch 16
+    x = torch.randn(3, r, r, generator=torch.Generator().manual_seed(0))
+    for patch in (8, 16):
+        s = region_spectrum(x, regions, patch)
+        assert s.shape == (3, 2, patch, patch // 2 + 1) and s.dtype == torch.float32
+        torch.testing.assert_close(s.double(), _spectrum_ref(x, regions, patch), atol=1e-6, rtol=1e-4)
+    s16 = region_spectrum(x, regions, 16)
+    torch.testing.assert_close(s16[:, 0].sum((1, 2)), torch.ones(3))  # each region's spectrum sums to 1
+    assert s16[:, 1].abs().max() == 0  # no whole window: zeros
+    # a texel checkerboard is all at (1/2, 1/2) cycles per texel; a diagonal wave of period 4 at (1/4, 1/4)
+    yy, xx = torch.meshgrid(torch.arange(r), torch.arange(r), indexing="ij")
+    check = (-1.0) ** (yy + xx).float()
+    wave = torch.cos(torch.pi / 2 * (yy + xx).float())
+    sc, sw = region_spectrum(torch.stack([check, wave]), regions, 16).split(1)
+    (peak,) = [spectrum_excess_peak(sc, sw)[0]]
+    assert peak[:2] == (0.5, 0.5) and peak[2] > 0.2
+    assert spectrum_excess_peak(sw, sc)[0][:2] == (0.25, 0.25)
+    assert float(spectrum_distance(sc, sw)[0]) > 0.9  # nearly disjoint
+    assert float(spectrum_distance(s16, s16)[0]) == 0
+    # and the G lattice's sign convention: a wave along (y, -x) has its excess at fy < 0
+    anti = torch.cos(torch.pi / 2 * (yy - xx).float())
+    assert spectrum_excess_peak(region_spectrum(anti[None], regions, 16), sc)[0][:2] == (-0.25, 0.25)
+    g64 = torch.randn(2, 16, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(2), requires_grad=True)
+    one = torch.full((16, 16), 3, dtype=torch.uint8)
+    assert torch.autograd.gradcheck(lambda t: region_spectrum(t, one, 8), (g64,))
+    flat = torch.full((1, r, r), 0.5, requires_grad=True)
+    out = region_spectrum(flat, regions, 8)
+    out.sum().backward()
+    assert out.abs().max() == 0 and torch.isfinite(flat.grad).all()  # flat: no energy, no NaN gradient
+    with pytest.raises(ValueError, match=r"expected float \(N, R, R\) maps and \(R, R\) uint8 regions matching them, got \(3, 1, 32, 32\)"):
+        region_spectrum(x[:, None], regions)
+    with pytest.raises(ValueError, match="patch must be even, at least 4 and at most the map size 32, got 7"):
+        region_spectrum(x, regions, 7)
+    with pytest.raises(ValueError, match="patch must be even, at least 4 and at most the map size 32, got 64"):
+        region_spectrum(x, regions, 64)
+    with pytest.raises(ValueError, match="at least one mapped region"):
+        region_spectrum(x, torch.full((r, r), 255, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="same regions"):
+        spectrum_distance(s16, region_spectrum(x, regions, 8))
+    with pytest.raises(ValueError, match="same regions"):
+        spectrum_excess_peak(s16[0], s16[0])
+
+
+def test_spectrum_loss_pulls_each_frequency_by_its_relative_running_gap():
+    from fitme_cli.reflectance.gan.train import _albedo_spectra, _spectrum_gap, data_spectrum, spectrum_loss
+
+    x = (1.6 * torch.rand(2, 7, 16, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) - 0.8).requires_grad_()
+    regions = torch.full((16, 16), 2, dtype=torch.uint8)
+    s = _albedo_spectra(x, regions)
+    assert s.shape == (2, 16 * 9)
+    torch.testing.assert_close(data_spectrum(x.detach(), regions, chunk=1), s.detach().mean(0).float())
+    target = s.detach().mean(0).clone()
+    running = target.clone()
+    running[40] += 0.05  # a lattice: too much at one frequency
+    running[3] -= 0.02  # too little at another
+    scale = target.clamp_min(0.1 / 256)
+    want = (2 * (running - target) / scale**2 * s.mean(0)).sum()
+    assert spectrum_loss(s, running, target).item() == pytest.approx(want.item())
+    (grad,) = torch.autograd.grad(spectrum_loss(s, running, target), x)
+    with torch.no_grad():
+        moved = _albedo_spectra(x - 0.02 * grad / grad.abs().max(), regions).mean(0) - s.mean(0)
+    assert moved[40] < 0 and moved[3] > 0, (moved[40], moved[3])  # down where too much, up where too little
+    (grad,) = torch.autograd.grad(spectrum_loss(_albedo_spectra(x, regions), target, target), x)
+    assert grad.abs().max() == 0  # on target: no pull
+    assert _spectrum_gap(running, target) == pytest.approx(0.5 * (0.05 + 0.02))
+    # a region without windows (zeros in the target) does not count in the gap
+    two = torch.cat([running, torch.zeros(16 * 9, dtype=running.dtype)])
+    assert _spectrum_gap(two, torch.cat([target, torch.zeros_like(target)])) == pytest.approx(0.035)
+
+
+def test_spectrum_weight_moves_the_fakes_grain_spectrum_and_branch_noise_is_set(tmp_path):
+    """Same seed, same steps: with the spectrum term G's finest-band spectrum ends nearer a target it was far
+    from; --branch-noise sets every branched layer's noise strength and nothing else."""
+    from fitme_cli.reflectance.gan.metrics import spectrum_distance
+    from fitme_cli.reflectance.gan.train import _albedo_spectra, set_branch_noise
+
+    data = _tiny_data()
+    regions = torch.full((16, 16), 2, dtype=torch.uint8)
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    # the target: a fresh G's spectrum tilted toward low frequencies
+    with torch.no_grad():
+        base = _albedo_spectra(new_state(TINY, TrainSettings(batch=8, kimg=1)).G(z).cat(), regions).mean(0).view(16, 9)
+    f = (torch.fft.fftfreq(16)[:, None] ** 2 + (torch.arange(9)[None] / 16) ** 2).sqrt()
+    target = (base * torch.exp(-f / 0.15) / (base * torch.exp(-f / 0.15)).sum()).flatten()
+
+    def run(weight):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, spectrum_weight=weight))
+        state.regions, state.spectrum_target = regions, target
+        torch.manual_seed(0)
+        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))]) for i in range(30)]
+        with torch.no_grad():
+            s = _albedo_spectra(state.G(z).cat(), regions).view(64, 1, 16, 9)
+        return float(spectrum_distance(s, target.view(1, 1, 16, 9))[0]), out
+
+    off, l_off = run(0.0)
+    on, l_on = run(0.05)
+    assert on < off / 2, (on, off)  # 0.072 against 0.227 measured
+    assert "spectrum_gap" not in l_off[0] and 0 < l_on[-1]["spectrum_gap"] < l_on[0]["spectrum_gap"]
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, spectrum_weight=1.0))
+    with pytest.raises(ValueError, match="needs state.regions and state.spectrum_target"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match="spectrum_weight 1.0 needs state.regions"):
+        from fitme_cli.reflectance.gan.train import train as train_loop
+
+        train_loop(state, data, tmp_path, progress=False)
+    with pytest.raises(ValueError, match="spectrum_weight must be finite and >= 0, got -1.0"):
+        TrainSettings(spectrum_weight=-1.0)
+    with pytest.raises(ValueError, match="spectrum_beta must be in"):
+        TrainSettings(spectrum_beta=1.0)
+    before = {n: p.clone() for n, p in state.G.named_parameters()}
+    set_branch_noise(state, 0.02)
+    for G in (state.G, state.G_ema):
+        for n, p in G.named_parameters():
+            if "branches" in n and n.endswith("noise_strength"):
+                assert float(p.detach()) == pytest.approx(0.02), n
+            elif G is state.G:
+                assert torch.equal(p, before[n]), n
+    assert any("branches" in n and n.endswith("noise_strength") for n in before)
+    with pytest.raises(ValueError, match="branch noise strength must be finite and in"):
+        set_branch_noise(state, float("nan"))
+
+
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
     data = _tiny_data()
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
@@ -862,8 +1017,10 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
-                                  "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--threads", "1"])
+                                  "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01",
+                                  "--branch-noise", "0.05", "--threads", "1"])
     assert r.exit_code == 0, r.output
+    assert "branched layers' noise strength set to 0.05" in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
     # the new rate
@@ -877,6 +1034,10 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.coherence_weight == 20.0 and 0 <= lines[-1]["coherence_gap"] <= 1 and "coherence_gap" not in lines[0]
     assert state.train.band_weight == 5.0 and state.train.band_levels == 3
     assert lines[-1]["band_gap"] >= 0 and "band_gap" not in lines[0]
+    # at 16^2 no region has a whole 16^2 window: the term runs, and its gap counts no region
+    assert state.train.spectrum_weight == 0.01 and lines[-1]["spectrum_gap"] == 0 and "spectrum_gap" not in lines[0]
+    strengths = [float(p) for n, p in state.G_ema.named_parameters() if "branches" in n and n.endswith("noise_strength")]
+    assert strengths and all(abs(v - 0.05) < 0.02 for v in strengths), strengths  # set, then a few steps of training
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output
@@ -981,12 +1142,17 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     regions = torch.from_numpy(cv2.resize(region_uv, (64, 64), interpolation=cv2.INTER_NEAREST))
     m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
     assert set(m) == {"per_channel", "std_ratio_by_scale", "frechet_reflectance_features", "region_albedo_q10_q50_q90",
-                      "albedo_band_ratio_by_region", "modality_consistency", "strand_coherence_albedo_normal_x",
-                      "interpolation_max_over_mean_step"}
+                      "albedo_band_ratio_by_region", "albedo_spectrum_tv_by_region", "modality_consistency",
+                      "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step"}
     coh = m["strand_coherence_albedo_normal_x"]
     assert set(coh) == set(m["region_albedo_q10_q50_q90"]) == set(m["albedo_band_ratio_by_region"])
     assert all(len(v) == 3 and all(np.isfinite(b) and b > 0 for b in v) for v in m["albedo_band_ratio_by_region"].values())
     assert all(len(v) == 2 and all(0 <= c <= 1 for c in v) for r in coh.values() for v in r.values())
+    spec = m["albedo_spectrum_tv_by_region"]  # only the regions with a whole 16^2 window at 64^2
+    assert spec and set(spec) < set(coh) and "lips" not in spec
+    for r in spec.values():
+        assert 0 <= r["half_vs_half"] <= 1 and 0 < r["gan_vs_heldout_half"] <= 1 and 0 < r["excess_share"] <= 1
+        assert -0.5 <= r["excess_peak_cycles_per_texel"][0] <= 0.5 and 0 <= r["excess_peak_cycles_per_texel"][1] <= 0.5
     assert all(set(r) == {"between", "coarse", "fine"} and all(np.isfinite(v) and v >= 0 for v in r.values())
                for r in m["std_ratio_by_scale"].values()) and len(m["std_ratio_by_scale"]) == 7
     assert set(m["frechet_reflectance_features"]["by_part"]) == {"tone", "detail"}
@@ -1027,6 +1193,35 @@ def test_closeup_shows_the_data_then_each_truncation_at_full_resolution():
     albedo = decode_maps(GanImages.split(data[:1]), TINY).albedo[0, :, 4:12, 4:12]
     expected = (linear_to_srgb(albedo).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
     np.testing.assert_allclose(img[:8, :8].astype(int), expected.astype(int), atol=1)  # the first data sample's face
+
+
+def test_spectrum_figure_puts_a_lattice_where_it_is():
+    """Data with a texel checkerboard: its spectrum is brightest in the panel's corners ((1/2, 1/2) cycles per
+    texel), and a G without it shows blue (less energy) there; the whole plane folds out of the half plane."""
+    from fitme_cli.reflectance.gan.metrics import region_spectrum
+    from fitme_cli.reflectance.gan.report import _full_plane, spectrum_figure
+
+    x = torch.randn(2, 16, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    one = torch.full((16, 16), 2, dtype=torch.uint8)
+    full = torch.stack([torch.from_numpy(_full_plane(h)) for h in region_spectrum(x, one)[:, 0]])
+    assert full.shape == (2, 16, 16)
+    torch.testing.assert_close(full.sum((1, 2)), torch.ones(2, dtype=torch.float64))
+    torch.testing.assert_close(full[:, 1:, 1:], torch.flip(full[:, 1:, 1:], (1, 2)))  # a real map's spectrum is symmetric
+    yy, xx = torch.meshgrid(torch.arange(16), torch.arange(16), indexing="ij")
+    check = ((-1.0) ** (yy + xx).float())
+    albedo = (0.3 + 0.1 * check).expand(4, 3, 16, 16)
+    data = encode_maps(ReflectanceMaps(albedo, torch.full((4, 1, 16, 16), 0.2),
+                                       torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1).expand(4, 3, 16, 16)), TINY).cat()
+    img = spectrum_figure(Generator(TINY), data, one, n=4, size=32)
+    assert img.shape == (32 + 4, 3 * 32 + 8, 3) and img.dtype == np.uint8
+    data_panel, ratio_panel = img[:32, :32].astype(int), img[:32, 2 * 36 :].astype(int)
+    import cv2
+
+    top = cv2.applyColorMap(np.full((1, 1), 255, np.uint8), cv2.COLORMAP_VIRIDIS)[0, 0, ::-1]
+    assert (data_panel[0, 0] == top).all() and (data_panel[16, 16] != top).any()  # (-1/2, -1/2), the top-left bin, is the peak
+    assert ratio_panel[1, 1, 2] > 200 and ratio_panel[1, 1, 0] < 100  # blue: G has far less at the checkerboard's frequency
+    with pytest.raises(ValueError, match="no region has a whole 16"):
+        spectrum_figure(Generator(TINY), data, _two_regions(), n=4)
 
 
 def test_orientation_coherence_known_values_and_bad_input():

@@ -43,7 +43,7 @@ def _stop_requests():
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
-                "coherence_weight", "band_weight", "band_levels")
+                "coherence_weight", "band_weight", "band_levels", "spectrum_weight")
 
 
 @click.command("train")
@@ -88,10 +88,17 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                    "(not in the paper; may change on --resume). [0]")
 @click.option("--band-levels", type=click.IntRange(1, 3),
               help="How many of the finest bands --band-weight pulls: 1-2, 2-4, 4-8 texels (may change on --resume). [2]")
+@click.option("--spectrum-weight", type=click.FloatRange(min=0),
+              help="Pull the running per-region spectrum of the finest band of G's albedo to the data's: where the grain "
+                   "sits in frequency, against a regular lattice (not in the paper; may change on --resume). [0]")
+@click.option("--branch-noise", type=click.FloatRange(-1, 1),
+              help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
+                   "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")
 @click.option("--seed", type=int, help="[0]")
 @click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
-def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, limit: int | None, threads: int | None, **flags) -> None:
+def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, limit: int | None, threads: int | None,
+            branch_noise: float | None, **flags) -> None:
     """Train BRDF-GAN on DATA_DIR (NAME_albedo/_specular/_normals maps, PNG or EXR).
 
     Every --snapshot-kimg it writes RUN_DIR/samples/kimgNNNN.NN.png (8 rows of A_D | A_S | N_S for fixed
@@ -115,7 +122,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..reflectance.gan.metrics import detail_region
     from ..reflectance.gan.networks import GanSettings
     from ..reflectance.gan.train import (TrainSettings, load_checkpoint, new_state, reset_mean_image, save_checkpoint,
-                                         set_learning_rates, train)
+                                         set_branch_noise, set_learning_rates, train)
 
     from ..reflectance.gan.data import find_samples
 
@@ -155,7 +162,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
-                      "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels")
+                      "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
+                      "spectrum_weight")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:
@@ -212,8 +220,11 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         click.echo("the checkpoint's mean image was trained (before it became fixed): reset to the data mean", err=True)
     if state.train.link_weight > 0:
         state.link_mask = detail_region(load_regions(gan_settings.resolution))  # where --link-weight measures
-    if state.train.coherence_weight > 0 or state.train.band_weight > 0:
-        state.regions = load_regions(gan_settings.resolution)  # where --coherence-weight and --band-weight measure
+    if state.train.coherence_weight > 0 or state.train.band_weight > 0 or state.train.spectrum_weight > 0:
+        state.regions = load_regions(gan_settings.resolution)  # where the per-region terms measure
+    if branch_noise is not None:
+        set_branch_noise(state, branch_noise)
+        click.echo(f"branched layers' noise strength set to {branch_noise}", err=True)
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
                f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
     with _stop_requests() as stops:

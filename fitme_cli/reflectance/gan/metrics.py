@@ -19,6 +19,9 @@
 - ``feature_parts``, ``region_albedo`` and ``region_albedo_bands``: views of ``reflectance_features`` that
   say where a Frechet distance comes from (tone per region vs detail), how each region's albedo is
   distributed, and how much grain each region's albedo has at each scale.
+- ``region_spectrum`` / ``spectrum_distance``: how the finest band's energy is spread over 2-D
+  frequencies, per region. The band energies and coherences cannot tell sparse pores from a regular
+  texel lattice of the same energy; the spectrum can (a lattice is a peak).
 """
 
 from __future__ import annotations
@@ -33,7 +36,8 @@ import torch.nn.functional as F
 __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_labels", "reflectance_features",
            "feature_parts", "region_albedo", "frechet_distance", "detail_region", "detail_link",
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
-           "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands"]
+           "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
+           "spectrum_distance", "spectrum_excess_peak"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -108,12 +112,17 @@ def detail_region(regions: torch.Tensor) -> torch.Tensor:
     return mask
 
 
-def _region_weights(regions: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """(R, R) uint8 labels -> (k, R*R) in ``like``'s dtype: each region of ``region_labels`` as weights summing to 1."""
+def _region_masks(regions: torch.Tensor) -> torch.Tensor:
+    """(R, R) uint8 labels -> (k, R, R) bool: each region of ``region_labels``; at least one is required."""
     labels = region_labels(regions)
     if not labels:
         raise ValueError("expected at least one mapped region (labels other than 255), got none")
-    onehot = torch.stack([regions == lab for lab in labels]).flatten(1).to(like)
+    return torch.stack([regions == lab for lab in labels])
+
+
+def _region_weights(regions: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(R, R) uint8 labels -> (k, R*R) in ``like``'s dtype: each region of ``region_labels`` as weights summing to 1."""
+    onehot = _region_masks(regions).flatten(1).to(like)
     return onehot / onehot.sum(1, keepdim=True)
 
 
@@ -156,6 +165,74 @@ def region_albedo(feats: np.ndarray) -> np.ndarray:
     region, in ``region_labels`` order."""
     tone, _ = feature_parts(feats)
     return tone.reshape(len(feats), -1, 7)[:, :, :3].mean(2)
+
+
+def _region_patches(regions: torch.Tensor, patch: int) -> list[torch.Tensor]:
+    """Per region of ``region_labels``: the (n,) long indices, in ``F.unfold`` order at stride patch/2, of the
+    patch x patch windows wholly inside it."""
+    onehot = _region_masks(regions)[:, None].float()  # (k, 1, R, R)
+    inside = F.unfold(onehot, patch, stride=patch // 2).amin(1)  # (k, L)
+    return [torch.nonzero(row > 0.5).flatten() for row in inside]
+
+
+def region_spectrum(img: torch.Tensor, regions: torch.Tensor, patch: int = 16) -> torch.Tensor:
+    """img: (N, R, R) float, any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, patch, patch // 2 + 1)
+    same dtype: per sample and region of ``region_labels``, the power spectrum of the finest Laplacian band
+    (``_bandpass``: 1-2 texels) averaged over the Hann-windowed patch x patch windows (stride patch/2)
+    wholly inside the region, normalised to sum 1. One half-plane of frequencies (``torch.fft.rfft2``
+    layout: row fy mod patch, column fx, in cycles per patch); the columns that stand for two
+    conjugate bins count twice, so the sum is over the whole plane. A region with no whole window, or a
+    sample flat in it, gives zeros. Differentiable."""
+    if img.ndim != 3 or not img.is_floating_point() or regions.shape != img.shape[1:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected float (N, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(img.shape)} {img.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    if patch < 4 or patch % 2 or patch > img.shape[-1]:
+        raise ValueError(f"patch must be even, at least 4 and at most the map size {img.shape[-1]}, got {patch}")
+    band = _bandpass(img[:, None], 1)[0]
+    hann = torch.hann_window(patch, periodic=False, dtype=img.dtype, device=img.device)
+    cols = F.unfold(band, patch, stride=patch // 2)  # (N, patch^2, L)
+    half = torch.full((patch // 2 + 1,), 2.0, dtype=img.dtype, device=img.device)
+    half[0] = half[-1] = 1.0
+    out = []
+    for idx in _region_patches(regions, patch):
+        if len(idx) == 0:
+            out.append(img.new_zeros(len(img), patch, patch // 2 + 1))
+            continue
+        p = cols[:, :, idx.to(img.device)].transpose(1, 2).reshape(len(img), -1, patch, patch)
+        p = (p - p.mean((2, 3), keepdim=True)) * hann[:, None] * hann
+        power = torch.fft.rfft2(p).abs().square().mean(1) * half
+        total = power.sum((1, 2), keepdim=True)
+        out.append(power / torch.where(total > 0, total, torch.ones_like(total)))
+    return torch.stack(out, 1)
+
+
+def _check_spectra(a: torch.Tensor, b: torch.Tensor) -> None:
+    if a.ndim != 4 or a.shape[1:] != b.shape[1:]:
+        raise ValueError(f"expected two (N, k, P, P/2+1) spectra of the same regions, got {tuple(a.shape)} and {tuple(b.shape)}")
+
+
+def spectrum_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a (N, k, P, P/2+1), b (M, k, P, P/2+1) ``region_spectrum`` of two sets -> (k,): per region, the total
+    variation distance between their mean spectra, the share of the finest band's energy that sits at
+    other frequencies (0: the same spread, 1: disjoint). Counts each conjugate pair once, as
+    ``region_spectrum`` normalises."""
+    _check_spectra(a, b)
+    return 0.5 * (a.mean(0) - b.mean(0)).abs().sum((1, 2))
+
+
+def spectrum_excess_peak(a: torch.Tensor, b: torch.Tensor) -> list[tuple[float, float, float]]:
+    """a, b as ``spectrum_distance`` -> per region, where a's mean spectrum most exceeds b's: (fy, fx) in cycles
+    per texel (fy signed, fx >= 0) and the excess's share of the energy. A lattice shows as a large excess
+    at a fixed frequency."""
+    _check_spectra(a, b)
+    patch = a.shape[2]
+    out = []
+    for d in a.mean(0) - b.mean(0):
+        i = int(torch.argmax(d))
+        fy, fx = divmod(i, d.shape[1])
+        fy = fy - patch if fy > patch // 2 else fy
+        out.append((fy / patch, fx / patch, float(d.flatten()[i])))
+    return out
 
 
 def region_albedo_bands(feats: np.ndarray) -> np.ndarray:

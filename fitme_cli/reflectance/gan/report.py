@@ -16,8 +16,8 @@ import torch
 from .data import load_dataset, load_regions
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
-                      modality_consistency, reflectance_features, region_albedo, region_albedo_bands, region_labels, std_parts,
-                      strand_coherence)
+                      modality_consistency, reflectance_features, region_albedo, region_albedo_bands, region_labels, region_spectrum,
+                      spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -65,18 +65,20 @@ def _encoded(stats_mean, stats_std):
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
              mapped: torch.Tensor, skin: torch.Tensor
-             ) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts, np.ndarray]:
+             ) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts, np.ndarray, torch.Tensor]:
     """One side of the comparison (generated when src is None): channel stats, reflectance features,
-    modality consistency, the std by scale and the strand coherence (the last three on the first 200 samples)."""
-    st, fs, cm = _Stats(mapped), [], []
+    modality consistency, the std by scale and the strand coherence (these three on the first 200 samples),
+    and the linear albedo luminance's finest-band spectra (N, k, 16, 9)."""
+    st, fs, cm, sp = _Stats(mapped), [], [], []
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
         fs.append(reflectance_features(x, regions))
+        sp.append(region_spectrum(x[:, :3].mean(1), regions))
         if sum(len(c) for c in cm) < 200:
             cm.append(x)
     first = torch.cat(cm)[:200]
     return (st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
-            strand_coherence(first, regions))
+            strand_coherence(first, regions), torch.cat(sp))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -107,7 +109,7 @@ def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
 
 
 def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncation_psi: float) -> dict:
-    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh), (data_stats, data_feats, data_cons, data_parts, data_coh) = gan, real
+    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh, gan_spec), (data_stats, data_feats, data_cons, data_parts, data_coh, data_spec) = gan, real
     half = len(data_feats) // 2
     fm, fsd = _encoded(gan_stats.mean, gan_stats.std)
     rm, rsd = _encoded(data_stats.mean, data_stats.std)
@@ -134,6 +136,17 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
     # where the albedo's grain is too faint or too strong: per region and band (finest first), G's mean RMS
     # over the data's (mean of r, g, b)
     band_ratio = region_albedo_bands(gan_feats).mean(0) / np.maximum(region_albedo_bands(data_feats).mean(0), 1e-12)
+    # where in frequency the albedo's finest grain sits (a lattice is a peak): per region with whole 16^2
+    # windows, the spectra's total variation distance, G against the held-out half and half against half,
+    # and the frequency (cycles per texel) where G's spectrum most exceeds the data's
+    sa, sb = data_spec[:half], data_spec[half:]
+    sg = gan_spec[: len(sb)]
+    tv_gan, tv_split, peaks = spectrum_distance(sg, sb), spectrum_distance(sa, sb), spectrum_excess_peak(sg, sb)
+    spectrum = {_region_name(lab): {"gan_vs_heldout_half": round(float(tv_gan[j]), 3),
+                                    "half_vs_half": round(float(tv_split[j]), 3),
+                                    "excess_peak_cycles_per_texel": [round(peaks[j][0], 4), round(peaks[j][1], 4)],
+                                    "excess_share": round(peaks[j][2], 4)}
+                for j, lab in enumerate(region_labels(regions)) if bool(sb[:, j].sum() > 0)}
     with torch.no_grad():
         ratios = [interpolation_smoothness(G.synthesis(w, noise_mode="const").cat())
                   for w in _walks(G, 8, 16, seed + 1, truncation_psi)]
@@ -146,6 +159,7 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
         "region_albedo_q10_q50_q90": region_tone,
         "albedo_band_ratio_by_region": {_region_name(lab): [round(float(v), 3) for v in band_ratio[j]]
                                         for j, lab in enumerate(region_labels(regions))},
+        "albedo_spectrum_tv_by_region": spectrum,
         "modality_consistency": {"gan_matched": round(gan_cons[0], 3), "gan_mismatched": round(gan_cons[1], 3),
                                  "data_matched": round(data_cons[0], 3), "data_mismatched": round(data_cons[1], 3)},
         # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region
@@ -205,7 +219,53 @@ def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: flo
     paths.append(out_dir / "brdf_gan_interpolation.png")
     atomic_write_image(out_dir / "brdf_gan_closeup.png", closeup(G, data, truncation_psi))
     paths.append(out_dir / "brdf_gan_closeup.png")
+    atomic_write_image(out_dir / "brdf_gan_spectrum.png", spectrum_figure(G, data, load_regions(r), truncation_psi=truncation_psi))
+    paths.append(out_dir / "brdf_gan_spectrum.png")
     return paths
+
+
+def _full_plane(half: torch.Tensor) -> np.ndarray:
+    """(P, P/2+1) ``region_spectrum`` half plane -> (P, P) whole plane, zero frequency at the centre (fy down, fx right)."""
+    p = half.shape[0]
+    full = torch.zeros(p, p, dtype=half.dtype)
+    full[:, : p // 2 + 1] = half
+    full[:, p // 2 + 1 :] = torch.roll(torch.flip(half[:, 1 : p // 2], (0, 1)), 1, 0)  # conjugate bins: (-fy, -fx)
+    full[:, 1 : p // 2] /= 2  # ``region_spectrum`` counts those columns twice
+    full[:, p // 2 + 1 :] /= 2
+    return torch.fft.fftshift(full).numpy()
+
+
+def spectrum_figure(G: Generator, data: torch.Tensor, regions: torch.Tensor, n: int = 64, truncation_psi: float = 1.0,
+                    size: int = 128) -> np.ndarray:
+    """(rows * (size + 4), 3 * size + 8, 3) uint8: per region with whole 16^2 windows, the mean finest-band spectrum
+    of the linear albedo luminance (``metrics.region_spectrum``) of n data samples | n generated | log2 of G
+    over data (blue -2, white 0, red +2). The spectra are log-scaled to the data panel's range; zero
+    frequency at each panel's centre, the corners are (1/2, 1/2) cycles per texel. A lattice is a spot."""
+    import cv2
+
+    spectra = [torch.cat([region_spectrum(x[:, :3].mean(1), regions) for x in _batches(G, src, n, 5, truncation_psi=truncation_psi)]).mean(0)
+               for src in (data[:n], None)]
+    rows = []
+    for j, lab in enumerate(region_labels(regions)):
+        d, g = (_full_plane(sp[j].double()) for sp in spectra)
+        if d.sum() <= 0:
+            continue
+        lo, hi = np.log10(d[d > 0].min()), np.log10(d.max())
+        panels = []
+        for sp in (d, g):
+            v = np.clip((np.log10(np.maximum(sp, 1e-12)) - lo) / max(hi - lo, 1e-9), 0, 1)
+            panels.append(cv2.applyColorMap((v * 255 + 0.5).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[:, :, ::-1])
+        ratio = np.clip(np.log2(np.maximum(g, 1e-12) / np.maximum(d, 1e-12)) / 2, -1, 1)
+        # white where G matches the data, red where it has more energy, blue where less
+        div = np.stack([1 - np.maximum(-ratio, 0), 1 - np.abs(ratio), 1 - np.maximum(ratio, 0)], -1)
+        panels.append((div * 255 + 0.5).astype(np.uint8))
+        big = [cv2.resize(pnl, (size, size), interpolation=cv2.INTER_NEAREST) for pnl in panels]
+        row = np.concatenate([big[0], np.full((size, 4, 3), 255, np.uint8), big[1], np.full((size, 4, 3), 255, np.uint8), big[2]], 1)
+        cv2.putText(row, _region_name(lab), (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        rows.append(np.concatenate([row, np.full((4, row.shape[1], 3), 255, np.uint8)], 0))
+    if not rows:
+        raise ValueError("no region has a whole 16^2 window at this resolution: nothing to show")
+    return np.concatenate(rows, 0)
 
 
 def closeup(G: Generator, data: torch.Tensor, truncation_psi: float = 1.0, n: int = 4) -> np.ndarray:

@@ -21,12 +21,13 @@ import torch.nn.functional as F
 
 from .ada import augment
 from .latents import sample_z
-from .metrics import detail_link, region_band_energy, region_coherence
+from .metrics import detail_link, region_band_energy, region_coherence, region_spectrum
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
-           "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss"]
+           "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
+           "data_spectrum", "spectrum_loss", "set_branch_noise"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,15 @@ class TrainSettings:
     band_weight: float = 0.0
     band_beta: float = 0.99  # per-step decay of the running band energies
     band_levels: int = 2  # how many of the finest bands are pulled: 1-2, 2-4, 4-8 texels
+    # not in the paper: weight of a term that pulls the running per-region spectrum of the albedo's finest
+    # band (``metrics.region_spectrum``, linear luminance, 16^2 windows) to the data's, each frequency
+    # relative to its target. The band term sets how much grain there is; this one where it sits. At
+    # 154.08 kimg 41-44 % of the skin's finest-band energy sat at other frequencies than the data's
+    # (half vs half 1-4 %), peaked at (0.25, 0.19) cycles per texel: the 128^2 trunk's noise
+    # upsampled, a regular diagonal lattice where the data has sparse pores (docs/brdf_gan.md).
+    # Drift-style like the band term. 0: off (the paper)
+    spectrum_weight: float = 0.0
+    spectrum_beta: float = 0.99  # per-step decay of the running spectra
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -116,6 +126,10 @@ class TrainSettings:
             raise ValueError(f"band_beta must be in [0, 1), got {self.band_beta}")
         if not 1 <= self.band_levels <= 3:
             raise ValueError(f"band_levels must be 1, 2 or 3, got {self.band_levels}")
+        if not (self.spectrum_weight >= 0 and math.isfinite(self.spectrum_weight)):
+            raise ValueError(f"spectrum_weight must be finite and >= 0, got {self.spectrum_weight}")
+        if not 0 <= self.spectrum_beta < 1:
+            raise ValueError(f"spectrum_beta must be in [0, 1), got {self.spectrum_beta}")
 
 
 @dataclass
@@ -159,6 +173,10 @@ class TrainState:
     # term's target, and G's running one; derived and restarted like the link
     band_target: torch.Tensor | None = None
     running_band: torch.Tensor | None = None
+    # (k * 16 * 9,) float32: the data's per-region finest-band albedo spectra (``data_spectrum``), the
+    # spectrum term's target, and G's running ones; derived and restarted like the link
+    spectrum_target: torch.Tensor | None = None
+    running_spectrum: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -306,6 +324,50 @@ def band_loss(bands: torch.Tensor, running: torch.Tensor, target: torch.Tensor) 
     return coherence_loss(bands / scale, running.to(bands) / scale, torch.ones_like(scale))
 
 
+_SPECTRUM_BINS = 16 * 9  # per region: ``region_spectrum``'s half plane at its default 16^2 windows
+
+
+def _albedo_spectra(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k * 16 * 9): per region, the finest-band spectrum of the linear albedo's
+    luminance (``metrics.region_spectrum``; zeros where a region has no whole 16^2 window)."""
+    return region_spectrum(decode_albedo(x[:, :3]).mean(1), regions).flatten(1)
+
+
+def data_spectrum(data: torch.Tensor, regions: torch.Tensor, n: int = 512, chunk: int = 64) -> torch.Tensor:
+    """(k * 16 * 9,) float32: the per-region albedo spectra of the first n data samples (the spectrum term's target)."""
+    return _data_mean(lambda x: _albedo_spectra(x, regions), data, n, chunk)
+
+
+def spectrum_loss(spectra: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """spectra: (B, m) of a fake batch (``_albedo_spectra``), running and target (m,): ``coherence_loss`` of each
+    frequency relative to its target, floored at a tenth of a flat spectrum's share (1 / 2560 of a 16^2
+    window's energy): a lattice is energy where the data has almost none, and relative to a near-zero
+    target one batch's estimate would be all noise."""
+    scale = target.to(spectra).detach().clamp_min(0.1 / 256)
+    return coherence_loss(spectra / scale, running.to(spectra) / scale, target.to(spectra) / scale)
+
+
+def _spectrum_gap(running: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean over the regions with windows of the total variation distance between running and target spectra."""
+    tv = 0.5 * (running - target).view(-1, _SPECTRUM_BINS).abs().sum(1)
+    has = target.view(-1, _SPECTRUM_BINS).sum(1) > 0
+    return float(tv[has].mean()) if bool(has.any()) else 0.0
+
+
+def set_branch_noise(state: TrainState, strength: float) -> None:
+    """Set the noise strength of every branched (per-modality) layer of G and G_ema. StyleGAN2 starts them at 0,
+    and there the gradient vanishes in expectation (noise n adds s n; the loss is first order in s only
+    through the batch's own draw): the 256^2 strengths of every run stayed at ~1e-3, and all the finest
+    detail came from the trunk's 128^2 noise, upsampled into a lattice (docs/brdf_gan.md)."""
+    if not (math.isfinite(strength) and abs(strength) <= 1):
+        raise ValueError(f"branch noise strength must be finite and in [-1, 1], got {strength}")
+    with torch.no_grad():
+        for G in (state.G, state.G_ema):
+            for name, p in G.synthesis.branches.named_parameters():
+                if name.endswith("noise_strength"):
+                    p.fill_(strength)
+
+
 def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     t = state.train
     return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
@@ -366,9 +428,19 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         state.running_band = update_running(state.running_band, bands.mean(0), t.band_beta)
         loss_band = band_loss(bands, state.running_band, state.band_target)
         band_gap = float((state.running_band / state.band_target - 1).abs().mean())
+    loss_spec = torch.zeros(())
+    spec_gap = None
+    if t.spectrum_weight > 0:
+        if state.spectrum_target is None or state.regions is None:
+            raise ValueError(f"train_step: spectrum_weight {t.spectrum_weight} needs state.regions and "
+                             "state.spectrum_target (data_spectrum of the training data)")
+        spectra = _albedo_spectra(fake, state.regions)
+        state.running_spectrum = update_running(state.running_spectrum, spectra.mean(0), t.spectrum_beta)
+        loss_spec = spectrum_loss(spectra, state.running_spectrum, state.spectrum_target)
+        spec_gap = _spectrum_gap(state.running_spectrum, state.spectrum_target)
     state.opt_G.zero_grad(set_to_none=True)
     (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
-     + t.coherence_weight * loss_coh + t.band_weight * loss_band).backward()
+     + t.coherence_weight * loss_coh + t.band_weight * loss_band + t.spectrum_weight * loss_spec).backward()
     state.opt_G.step()
     # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
     G.requires_grad_(False)
@@ -419,6 +491,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         out["coherence_gap"] = coh_gap  # mean over regions of |running - target| albedo coherence
     if band_gap is not None:
         out["band_gap"] = band_gap  # mean over regions, bands and channels of |running / target - 1|
+    if spec_gap is not None:
+        out["spectrum_gap"] = spec_gap  # mean over regions of the running spectrum's TV distance to the target
     return out
 
 
@@ -611,6 +685,10 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if state.regions is None:
             raise ValueError(f"train: band_weight {t.band_weight} needs state.regions (the UV region labels)")
         state.band_target = data_band(data, state.regions, t.band_levels)
+    if t.spectrum_weight > 0 and state.spectrum_target is None:
+        if state.regions is None:
+            raise ValueError(f"train: spectrum_weight {t.spectrum_weight} needs state.regions (the UV region labels)")
+        state.spectrum_target = data_spectrum(data, state.regions)
     total = int(t.kimg * 1000)
     snap_every = max(int(t.snapshot_kimg * 1000), t.batch)
     next_snap = (state.nimg // snap_every + 1) * snap_every
