@@ -368,6 +368,23 @@ def set_branch_noise(state: TrainState, strength: float) -> None:
                     p.fill_(strength)
 
 
+def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
+                 running: torch.Tensor | None, measure: Callable[[torch.Tensor], torch.Tensor],
+                 loss: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+                 gap: Callable[[torch.Tensor, torch.Tensor], float]) -> tuple[torch.Tensor, torch.Tensor | None, float | None]:
+    """One per-region drift term of ``train_step`` (coherence, band, spectrum): measure the fake batch
+    (``measure(regions)`` -> (B, m)), update the running mean, and return (loss, running, gap); with weight 0
+    (zero loss, running unchanged, no gap)."""
+    if weight <= 0:
+        return torch.zeros(()), running, None
+    if target is None or regions is None:
+        raise ValueError(f"train_step: {name}_weight {weight} needs state.regions and state.{name}_target "
+                         f"(data_{name} of the training data)")
+    values = measure(regions)
+    running = update_running(running, values.mean(0), beta)
+    return loss(values, running, target), running, gap(running, target)
+
+
 def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     t = state.train
     return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
@@ -408,36 +425,15 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         link = float(links.detach().mean())
         state.running_link = link if state.running_link is None else state.running_link + (1 - t.link_beta) * (link - state.running_link)
         loss_link = link_loss(links, state.running_link, state.link_target)
-    loss_coh = torch.zeros(())
-    coh_gap = None
-    if t.coherence_weight > 0:
-        if state.coherence_target is None or state.regions is None:
-            raise ValueError(f"train_step: coherence_weight {t.coherence_weight} needs state.regions and "
-                             "state.coherence_target (data_coherence of the training data)")
-        coh = _albedo_coherence(fake, state.regions)
-        state.running_coherence = update_running(state.running_coherence, coh.mean(0), t.coherence_beta)
-        loss_coh = coherence_loss(coh, state.running_coherence, state.coherence_target)
-        coh_gap = float((state.running_coherence - state.coherence_target).abs().mean())
-    loss_band = torch.zeros(())
-    band_gap = None
-    if t.band_weight > 0:
-        if state.band_target is None or state.regions is None:
-            raise ValueError(f"train_step: band_weight {t.band_weight} needs state.regions and state.band_target "
-                             "(data_band of the training data)")
-        bands = _albedo_bands(fake, state.regions, t.band_levels)
-        state.running_band = update_running(state.running_band, bands.mean(0), t.band_beta)
-        loss_band = band_loss(bands, state.running_band, state.band_target)
-        band_gap = float((state.running_band / state.band_target - 1).abs().mean())
-    loss_spec = torch.zeros(())
-    spec_gap = None
-    if t.spectrum_weight > 0:
-        if state.spectrum_target is None or state.regions is None:
-            raise ValueError(f"train_step: spectrum_weight {t.spectrum_weight} needs state.regions and "
-                             "state.spectrum_target (data_spectrum of the training data)")
-        spectra = _albedo_spectra(fake, state.regions)
-        state.running_spectrum = update_running(state.running_spectrum, spectra.mean(0), t.spectrum_beta)
-        loss_spec = spectrum_loss(spectra, state.running_spectrum, state.spectrum_target)
-        spec_gap = _spectrum_gap(state.running_spectrum, state.spectrum_target)
+    loss_coh, state.running_coherence, coh_gap = _region_term(
+        "coherence", t.coherence_weight, t.coherence_beta, state.regions, state.coherence_target, state.running_coherence,
+        lambda regions: _albedo_coherence(fake, regions), coherence_loss, lambda run, tgt: float((run - tgt).abs().mean()))
+    loss_band, state.running_band, band_gap = _region_term(
+        "band", t.band_weight, t.band_beta, state.regions, state.band_target, state.running_band,
+        lambda regions: _albedo_bands(fake, regions, t.band_levels), band_loss, lambda run, tgt: float((run / tgt - 1).abs().mean()))
+    loss_spec, state.running_spectrum, spec_gap = _region_term(
+        "spectrum", t.spectrum_weight, t.spectrum_beta, state.regions, state.spectrum_target, state.running_spectrum,
+        lambda regions: _albedo_spectra(fake, regions), spectrum_loss, _spectrum_gap)
     state.opt_G.zero_grad(set_to_none=True)
     (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
      + t.coherence_weight * loss_coh + t.band_weight * loss_band + t.spectrum_weight * loss_spec).backward()
