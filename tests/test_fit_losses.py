@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-from fitme_cli.fitting.losses import (chromaticity_loss, flip_loss, identity_loss, landmark_loss, perceptual_loss,
-                                      photometric_loss, w_prior)
+from fitme_cli.fitting.losses import (chromaticity_loss, flip_loss, identity_loss, landmark_loss, mean_colour_loss,
+                                      perceptual_loss, photometric_loss, w_prior)
 
 
 def test_landmark_loss_known_values_scale_and_robustness():
@@ -25,6 +25,30 @@ def test_landmark_loss_known_values_scale_and_robustness():
     assert landmark_loss(p, t, torch.tensor([0.0, 1, 1, 1]), torch.tensor([100.0, 100.0])).sum() == 0  # weight 0 ignores it
     with pytest.raises(ValueError, match="same shape"):
         landmark_loss(p[:, :3], t, w, torch.ones(2))
+
+
+def test_mean_colour_loss():
+    r = torch.zeros(1, 3, 4, 4)
+    ph = torch.zeros(1, 3, 4, 4)
+    ph[:, 0, :, :2] = 0.6  # red on the left half: the mean red is 0.3, the other channels 0
+    m = torch.ones(1, 1, 4, 4)
+    assert float(mean_colour_loss(r, ph, m)) == pytest.approx(0.1)  # |0.3| + 0 + 0, over 3 channels
+    r[:, 0, :, 2:] = 0.6  # the same mean colour, pixels not lined up: no loss (photometric_loss: 0.2)
+    assert float(mean_colour_loss(r, ph, m)) == pytest.approx(0.0)
+    assert float(photometric_loss(r, ph, m)) == pytest.approx(0.2)
+    m[..., 2:] = 0  # only the left half: render 0 against 0.6 red
+    assert float(mean_colour_loss(r, ph, m)) == pytest.approx(0.2)
+    assert float(mean_colour_loss(r, ph, torch.zeros_like(m))) == 0  # empty mask: no NaN
+    with pytest.raises(ValueError, match=r"mean_colour_loss: got render \(1, 3, 4, 4\), photo \(1, 3, 4, 4\), mask \(1, 1, 4, 2\)"):
+        mean_colour_loss(r, ph, m[..., :2])
+
+
+def test_mean_colour_loss_gradcheck():
+    torch.manual_seed(0)
+    r = torch.rand(2, 3, 5, 5, dtype=torch.float64, requires_grad=True)
+    ph = torch.rand(2, 3, 5, 5, dtype=torch.float64)
+    m = (torch.rand(2, 1, 5, 5, dtype=torch.float64) > 0.4).double()
+    assert torch.autograd.gradcheck(lambda x: mean_colour_loss(x, ph, m), (r,))
 
 
 def test_photometric_loss():

@@ -15,7 +15,7 @@ and keeps an effect only where it lowers the residual by the selector's threshol
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -27,7 +27,8 @@ from ..render import Camera, Effects, Lights, Renderer
 from ..render.effects import EffectChoice, SelectorSettings, select_effects
 from ..render.camera import focal_px_from_35mm, project
 from ..render.shading import srgb_to_linear
-from .losses import identity_loss, landmark_loss, perceptual_loss, photometric_loss, w_prior
+from ..shape.regions import REGIONS
+from .losses import identity_loss, landmark_loss, mean_colour_loss, perceptual_loss, photometric_loss, w_prior
 from .pose import initial_camera
 
 __all__ = ["InversionSettings", "TuningSettings", "member_settings", "PhotoInput", "InversionResult", "TuningResult",
@@ -45,6 +46,12 @@ class InversionSettings:
     # differences summed over channels) is ~25x an LPIPS value for the same pair of faces
     lambdas: tuple[float, float, float, float, float, float, float] = (100.0, 0.5, 1.0, 1.0, 5e-2, 5e-4, 5e-4)
     jaw_weight: float = 0.3  # landmarks on the face outline slide along it: trust them less
+    # not in the paper: the hair term, the mean colour of the rendered scalp against the photo's there
+    # (_Problem.evaluate), at the photometric lambda_2. The paper's L_ph covers the whole render; ours
+    # covers the photo's skin, so nothing saw the hair and a fit kept its w_avg start's. From the 154 kimg
+    # G on that is grey: the fast preset gave the camera man grey hair, and darkening its scalp alone
+    # lifted FaceNet similarity 0.135 -> 0.32 (docs/fitting.md "The hair term")
+    hair_weight: float = 0.5
     # share of iterations with the synthesis stopped at coarse_resolution. Off by default: the 92 kimg
     # generator's 256^2 branch blocks change the colours, not only the detail (stopped at 128^2 its
     # albedo's red channel is 0.23 higher in network space), so W fitted on coarse maps lands the albedo
@@ -79,6 +86,8 @@ class InversionSettings:
             raise ValueError(f"InversionSettings.start_jitter must be finite and >= 0, got {self.start_jitter}")
         if not 0.0 <= self.noise_gain <= 1.0:
             raise ValueError(f"InversionSettings.noise_gain must be in [0, 1], got {self.noise_gain}")
+        if not (self.hair_weight >= 0.0 and math.isfinite(self.hair_weight)):
+            raise ValueError(f"InversionSettings.hair_weight must be finite and >= 0, got {self.hair_weight}")
         for name in ("coarse_fraction", "select_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"InversionSettings.{name} must be in [0, 1], got {getattr(self, name)}")
@@ -102,7 +111,12 @@ class TuningSettings:
     # the paper's lambda_8..11: perceptual (LPIPS there, dlib activations here: rescaled by 1/25 as
     # lambda_4), photometric, flip, chromaticity
     lambdas: tuple[float, float, float, float] = (2.0 / 25, 0.5, 0.8, 0.35)
+    hair_weight: float = 0.5  # not in the paper: the inversion's hair term (InversionSettings.hair_weight)
     effects: Effects | None = None  # None: the effects the inversion chose
+
+    def __post_init__(self) -> None:
+        if not (self.hair_weight >= 0.0 and math.isfinite(self.hair_weight)):
+            raise ValueError(f"TuningSettings.hair_weight must be finite and >= 0, got {self.hair_weight}")
 
 
 @dataclass(frozen=True)
@@ -177,6 +191,16 @@ def _rodrigues(aa: torch.Tensor) -> torch.Tensor:
     return eye + s * kmat + (1 - c) * kmat @ kmat
 
 
+def _detached(obj):
+    """A copy of a frozen dataclass of tensors (``Camera``, ``Lights``) with every tensor cut from the graph."""
+    return replace(obj, **{f.name: getattr(obj, f.name).detach() for f in fields(obj) if isinstance(getattr(obj, f.name), torch.Tensor)})
+
+
+# the hair term skips the silhouette's last pixels: antialiasing blends them with the photo behind,
+# and hair reaches past the skull, so there the render's scalp meets the background, not the hair
+_HAIR_MARGIN = 2
+
+
 class _Problem:
     """The photos as tensors, and one differentiable evaluation of the scene against them."""
 
@@ -191,6 +215,8 @@ class _Problem:
         self.photo = torch.stack([torch.from_numpy(p.crop).permute(2, 0, 1).float() / 255 for p in photos]).to(dev)  # sRGB
         self.photo_lin = srgb_to_linear(self.photo)
         self.skin = torch.stack([torch.from_numpy(p.skin) for p in photos])[:, None].to(dev)
+        # (F,) bool, triangles with every corner on the scalp: where the render shows the hair
+        self.scalp_triangle = (shape_model.regions[shape_model.triangles] == REGIONS.index("scalp")).all(-1).to(dev)
         self.target_lm = torch.stack([torch.from_numpy(p.landmarks) for p in photos]).to(dev)
         self.face_size = torch.tensor([float(np.ptp(p.landmarks, 0).max()) for p in photos], device=dev)
         self.lm_w = torch.ones(468, device=dev)
@@ -216,12 +242,33 @@ class _Problem:
         out = self.renderer(shp.vertices, shp.normals, shp.tangents, maps, cam, lights, effects, background=self.photo_lin)
         return photometric_loss(out.image, self.photo, self.skin * out.mask)
 
+    def hair_mask(self, triangle: torch.Tensor) -> torch.Tensor:
+        """(P, 1, S, S) float, 1 where the render shows a scalp triangle outside the photo's skin mask and
+        at least ``_HAIR_MARGIN`` pixels inside the silhouette. triangle: (P, S, S) int64 rasterised
+        triangle index, -1 on the background (``Fragments.triangle``)."""
+        scalp = (self.scalp_triangle[triangle.clamp(min=0)] & (triangle >= 0))[:, None].to(self.skin.dtype)
+        k = 2 * _HAIR_MARGIN + 1
+        near_background = torch.nn.functional.max_pool2d((triangle < 0)[:, None].to(scalp.dtype), k, 1, _HAIR_MARGIN)
+        return scalp * (1 - near_background) * (1 - self.skin)
+
     def evaluate(self, maps: ReflectanceMaps, p_s, p_e, cam: Camera, lights: Lights, effects: Effects,
-                 with_landmarks: bool = True, with_identity: bool = True) -> dict[str, torch.Tensor]:
+                 with_landmarks: bool = True, with_identity: bool = True, with_hair: bool = True) -> dict[str, torch.Tensor]:
         """Unweighted (P,) losses of one render of the scene."""
         shp = self.shape_model(p_s.expand(self.n, -1), p_e)
         out = self.renderer(shp.vertices, shp.normals, shp.tangents, maps, cam, lights, effects, background=self.photo_lin)
         terms = {"photometric": photometric_loss(out.image, self.photo, self.skin * out.mask)}
+        if with_hair:
+            # W alone answers the hair term: in its own render the geometry, camera and lights are cut
+            # from the graph. Through the shared render it moved the head, so that Grace Hopper's cap fell
+            # outside the scalp, and doubled her landmark error (fast preset: 5.8 -> 14 px)
+            hair = self.renderer(shp.vertices.detach(), shp.normals.detach(), shp.tangents.detach(), maps, _detached(cam),
+                                 _detached(lights), effects, background=self.photo_lin).image
+            mask = self.hair_mask(out.fragments.triangle)
+            # weighted by the hair's share of the pixels the two terms see (the paper's L_ph covers the
+            # whole render): a glimpse of scalp under a cap weighs little, a profile's back of the head much
+            area = mask.sum(dim=(1, 2, 3))
+            share = area / (area + (self.skin * out.mask).sum(dim=(1, 2, 3))).clamp(min=1.0)
+            terms["hair"] = share * mean_colour_loss(hair, self.photo, mask)
         if with_landmarks:
             lm = project(shp.vertices[:, self.landmark_vertices], cam)[..., :2]
             terms["landmarks"] = landmark_loss(lm, self.target_lm, self.lm_w, self.face_size)
@@ -305,6 +352,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
     # translation is in mm: the paper's lr (for unit-scale parameters) would move it 0.01 mm a step
     opt = torch.optim.Adam([{"params": params}, {"params": [trans], "lr": s.lr * 100}], lr=s.lr)
     lam = dict(zip(("landmarks", "photometric", "identity", "perceptual", "w", "shape", "expression"), s.lambdas))
+    lam["hair"] = s.hair_weight
     history: list[dict[str, float]] = []
     n_coarse = int(s.coarse_fraction * s.iterations)
     r_full = G.settings.resolution
@@ -389,7 +437,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         if it == select_at:
             select(maps)
         p_s = shape_coeffs()
-        terms = pb.evaluate(maps, p_s, p_e, pb.camera(aa, trans), lights_now(), effects)
+        terms = pb.evaluate(maps, p_s, p_e, pb.camera(aa, trans), lights_now(), effects, with_hair=s.hair_weight > 0)
         terms["w"] = w_loss(ws).expand(n)
         terms["shape"] = shape_model.identity_prior(p_s).expand(n)
         terms["expression"] = shape_model.expression_prior(p_e)
@@ -410,9 +458,7 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         maps = decode_maps(G.synthesis(ws, noise_mode="const", noise_gain=s.noise_gain), G.settings)
         cam = pb.camera(aa, trans)
         lights = lights_now()
-    cam = Camera(cam.focal.detach(), cam.principal.detach(), cam.rotation.detach(), cam.translation.detach(), pb.size, pb.size)
-    lights = Lights(lights.ambient.detach(), lights.direction.detach(), lights.colour.detach(),
-                    sh=None if lights.sh is None else lights.sh.detach())
+    cam, lights = _detached(cam), _detached(lights)
     return InversionResult(ws.detach(), shape_coeffs().detach(), p_e.detach(), cam, lights, maps, history, effects, choice,
                            residuals, s.noise_gain, select_at if choice is not None else None)
 
@@ -434,12 +480,13 @@ def tune(photos: list[PhotoInput], G: Generator, inv: InversionResult, shape_mod
         p.requires_grad_(True)
     opt = torch.optim.Adam(params, lr=s.lr)
     lam = dict(zip(("perceptual", "photometric", "flip", "chromaticity"), s.lambdas))
+    lam["hair"] = s.hair_weight
     reference = inv.maps.albedo.detach()
     history: list[dict[str, float]] = []
     for it in range(s.iterations):
         maps = decode_maps(G.synthesis(inv.ws, noise_mode="const", noise_gain=inv.noise_gain), G.settings)
         terms = pb.evaluate(maps, inv.p_s, inv.p_e, inv.cameras, inv.lights, s.effects or inv.effects, with_landmarks=False,
-                            with_identity=False)
+                            with_identity=False, with_hair=s.hair_weight > 0)
         terms["flip"] = flip_loss(maps.albedo, mapped.to(pb.device)).expand(pb.n)
         terms["chromaticity"] = chromaticity_loss(maps.albedo, reference, mapped.to(pb.device)).expand(pb.n)
         weighted = {k: lam[k] * v for k, v in terms.items()}

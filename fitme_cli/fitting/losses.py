@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["landmark_loss", "photometric_loss", "identity_loss", "perceptual_loss", "w_prior", "flip_loss",
+__all__ = ["landmark_loss", "photometric_loss", "mean_colour_loss", "identity_loss", "perceptual_loss", "w_prior", "flip_loss",
            "chromaticity_loss"]
 
 
@@ -30,6 +30,19 @@ def photometric_loss(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tens
         raise ValueError(f"photometric_loss: got render {tuple(render.shape)}, photo {tuple(photo.shape)}, mask {tuple(mask.shape)}")
     m = mask.to(render.dtype)
     return ((render - photo).abs() * m).sum(dim=(1, 2, 3)) / (3 * m.sum(dim=(1, 2, 3))).clamp(min=1.0)
+
+
+def mean_colour_loss(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """L1 between the mean colours of render and photo over the mask, averaged over the channels; 0 for
+    an empty mask. render, photo: (B, 3, H, W) in the same space; mask: (B, 1, H, W) weights. Unlike
+    ``photometric_loss`` it asks for a region's colour, not for its pixels to line up: the hair term's
+    measure (fitting/invert.py)."""
+    if render.shape != photo.shape or mask.shape != (render.shape[0], 1, *render.shape[2:]):
+        raise ValueError(f"mean_colour_loss: got render {tuple(render.shape)}, photo {tuple(photo.shape)}, mask {tuple(mask.shape)}")
+    m = mask.to(render.dtype)
+    area = m.sum(dim=(1, 2, 3)).clamp(min=1.0)
+    diff = ((render - photo) * m).sum(dim=(2, 3)) / area[:, None]  # (B, 3) mean colour difference
+    return diff.abs().mean(-1)
 
 
 def identity_loss(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
