@@ -907,6 +907,67 @@ def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
         assert torch.equal(va, vb), ka
 
 
+def test_checkpoint_keeps_the_drift_terms_running_means(tmp_path):
+    """A resume restarted the band and spectrum terms' running means from one batch (not exact); they are
+    saved now, and a resume with the terms on continues bit-identically. A running mean whose shape no
+    longer fits its target (--band-levels changed on --resume) restarts."""
+    from fitme_cli.reflectance.gan.train import _albedo_bands, _albedo_spectra
+
+    data = _tiny_data()
+    regions = torch.full((16, 16), 2, dtype=torch.uint8)
+    with torch.no_grad():
+        band1, spectrum = _albedo_bands(data[:8], regions, 1).mean(0), _albedo_spectra(data[:8], regions).mean(0)
+
+    def ready(state):  # what fitme train recomputes from the data on every start
+        state.regions, state.band_target, state.spectrum_target = regions, band1, spectrum
+        return state
+
+    state = ready(new_state(TINY, TrainSettings(batch=4, kimg=1, band_weight=0.5, band_levels=1, spectrum_weight=0.01)))
+    for i in range(3):
+        train_step(state, data[4 * i : 4 * i + 4])
+    save_checkpoint(state, tmp_path / "ck.safetensors")
+    saved = state.running_band.clone(), state.running_spectrum.clone()
+    train_step(state, data[4:8])
+    train_step(state, data[8:12])
+    loaded = ready(load_checkpoint(tmp_path / "ck.safetensors"))  # restores the RNG as it was at saving
+    assert torch.equal(loaded.running_band, saved[0]) and torch.equal(loaded.running_spectrum, saved[1])
+    assert loaded.running_coherence is None and loaded.running_moments is None and loaded.running_link is None
+    train_step(loaded, data[4:8])
+    train_step(loaded, data[8:12])
+    for (ka, va), (_, vb) in zip(state.G.state_dict().items(), loaded.G.state_dict().items()):
+        assert torch.equal(va, vb), ka
+    loaded.train = dataclasses.replace(loaded.train, band_levels=2)
+    with torch.no_grad():
+        loaded.band_target = _albedo_bands(data[:8], regions, 2).mean(0)
+    out = train_step(loaded, data[:4])  # 2 levels against a running mean of 1: restarted, not an error
+    assert loaded.running_band.shape == loaded.band_target.shape and out["band_gap"] >= 0
+
+
+def test_warm_running_starts_missing_running_means_from_fakes_and_keeps_the_rng():
+    from fitme_cli.reflectance.gan.train import _albedo_bands, _albedo_spectra, warm_running
+
+    data = _tiny_data()
+    regions = torch.full((16, 16), 2, dtype=torch.uint8)
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, band_weight=0.5, band_levels=1, spectrum_weight=0.01))
+    state.regions = regions
+    with torch.no_grad():
+        state.band_target, state.spectrum_target = _albedo_bands(data, regions, 1).mean(0), _albedo_spectra(data, regions).mean(0)
+    torch.manual_seed(5)
+    rng = torch.get_rng_state()
+    assert sorted(warm_running(state, batches=8)) == ["band", "spectrum"]
+    assert torch.equal(torch.get_rng_state(), rng)  # the training's random stream is untouched
+    torch.manual_seed(5)  # the same 8 batches of G's fakes, by hand: the warm start is their mean
+    with torch.no_grad():
+        fakes = [state.G.synthesis(state.G.ws(torch.randn(4, TINY.z_dim))).cat() for _ in range(8)]
+    band = torch.stack([_albedo_bands(f, regions, 1).mean(0) for f in fakes]).mean(0)
+    spectrum = torch.stack([_albedo_spectra(f, regions).mean(0) for f in fakes]).mean(0)
+    torch.testing.assert_close(state.running_band, band)
+    torch.testing.assert_close(state.running_spectrum, spectrum)
+    assert state.running_coherence is None and state.running_link is None  # their terms are off
+    band = state.running_band.clone()
+    assert warm_running(state) == [] and torch.equal(state.running_band, band)  # a running mean present is kept
+
+
 def test_mean_image_is_fixed_and_old_checkpoints_migrate(tmp_path):
     """The mean image is a buffer (trained, it became per-texel noise: docs/brdf_gan.md). A checkpoint
     from before, with Adam state for it, loads with every other parameter's state where it belongs."""

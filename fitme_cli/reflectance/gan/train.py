@@ -381,6 +381,8 @@ def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | 
         raise ValueError(f"train_step: {name}_weight {weight} needs state.regions and state.{name}_target "
                          f"(data_{name} of the training data)")
     values = measure(regions)
+    if running is not None and running.shape != target.shape:  # e.g. --band-levels changed on --resume
+        running = None
     running = update_running(running, values.mean(0), beta)
     return loss(values, running, target), running, gap(running, target)
 
@@ -523,6 +525,43 @@ def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.
     opt.load_state_dict(sd)
 
 
+_RUNNING = ("running_moments", "running_coherence", "running_band", "running_spectrum")
+_WARM_BATCHES = 16
+
+
+def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
+    """Start every active drift term whose running mean is missing from the mean over ``batches`` batches
+    of G's fakes, not from the first training batch alone; the global RNG is left as it was. For resuming a
+    checkpoint from before the running means were saved (2026-11-27): restarted from one batch, each term
+    pulls along a noisy direction for ~1 / (1 - beta) steps. Needs the targets set (``train`` does that).
+    Returns the names of the terms started."""
+    t, G = state.train, state.G
+    measures = {
+        "running_moments": (t.moment_drift_weight, batch_moments),
+        "running_link": (t.link_weight, lambda x: detail_link(x, state.link_mask).mean()),
+        "running_coherence": (t.coherence_weight, lambda x: _albedo_coherence(x, state.regions).mean(0)),
+        "running_band": (t.band_weight, lambda x: _albedo_bands(x, state.regions, t.band_levels).mean(0)),
+        "running_spectrum": (t.spectrum_weight, lambda x: _albedo_spectra(x, state.regions).mean(0)),
+    }
+    todo = {k: f for k, (w, f) in measures.items() if w > 0 and getattr(state, k) is None}
+    if not todo or batches < 1:
+        return []
+    rng = torch.get_rng_state()
+    sums: dict[str, torch.Tensor] = {}
+    try:
+        with torch.no_grad():
+            for _ in range(batches):
+                fake = G.synthesis(G.ws(torch.randn(t.batch, state.gan.z_dim))).cat()
+                for k, f in todo.items():
+                    v = f(fake).detach().float()
+                    sums[k] = v if k not in sums else sums[k] + v
+    finally:
+        torch.set_rng_state(rng)
+    for k, v in sums.items():
+        setattr(state, k, float(v / batches) if k == "running_link" else v / batches)
+    return [k.removeprefix("running_") for k in todo]
+
+
 def save_checkpoint(state: TrainState, path: Path) -> None:
     """Atomic: written beside ``path`` then renamed. safetensors only; settings in the metadata."""
     from safetensors.torch import save_file
@@ -535,9 +574,13 @@ def save_checkpoint(state: TrainState, path: Path) -> None:
     tensors.update(_opt_tensors("opt_G", state.opt_G))
     tensors.update(_opt_tensors("opt_D", state.opt_D))
     tensors["rng.torch"] = torch.get_rng_state()
+    # the drift terms' running means: without them a resume restarts each from one batch, a noisy
+    # direction for ~1 / (1 - beta) steps (at 158.01 kimg D's loss fell from 0.2-0.5 to 0.01-0.04 at once)
+    tensors.update({f"running.{k}": getattr(state, k).contiguous() for k in _RUNNING if getattr(state, k) is not None})
     meta = {"gan": json.dumps(asdict(state.gan)), "train": json.dumps(asdict(state.train)),
             "counters": json.dumps({"step": state.step, "nimg": state.nimg, "ada_p": state.ada_p,
-                                    "ada_acc": state.ada_acc, "ada_n": state.ada_n, "wall_time": state.wall_time})}
+                                    "ada_acc": state.ada_acc, "ada_n": state.ada_n, "wall_time": state.wall_time,
+                                    "running_link": state.running_link})}
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata=meta)
@@ -595,6 +638,8 @@ def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainStat
     torch.set_rng_state(tensors["rng.torch"])
     for k, v in json.loads(meta["counters"]).items():
         setattr(state, k, v)
+    for k in _RUNNING:  # checkpoints from before 2026-11-27 have none (``train`` then calls ``warm_running``)
+        setattr(state, k, tensors.get(f"running.{k}"))
     return state
 
 
@@ -685,6 +730,11 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if state.regions is None:
             raise ValueError(f"train: spectrum_weight {t.spectrum_weight} needs state.regions (the UV region labels)")
         state.spectrum_target = data_spectrum(data, state.regions)
+    if state.nimg > 0:  # a resume: a checkpoint from before 2026-11-27 holds no running means
+        started = warm_running(state)
+        if started and progress:
+            print(f"drift terms' running means started from {_WARM_BATCHES} batches of fakes: {', '.join(started)}",
+                  file=sys.stderr)
     total = int(t.kimg * 1000)
     snap_every = max(int(t.snapshot_kimg * 1000), t.batch)
     next_snap = (state.nimg // snap_every + 1) * snap_every
