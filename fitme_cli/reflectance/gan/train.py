@@ -153,11 +153,11 @@ class TrainState:
     # (2, 7) float32: a data batch's expected per-channel mean and std (``data_moments``), the moment
     # term's target; derived from the data by ``train``, not saved (a resume derives it again)
     moments: torch.Tensor | None = None
-    # (2, 7) float32: running ``batch_moments`` of G's training batches (``drift_loss``); not saved, a
-    # resume starts it again from its first batch
+    # (2, 7) float32: running ``batch_moments`` of G's training batches (``drift_loss``); saved in the
+    # checkpoint (``_RUNNING``; an older checkpoint's is started by ``warm_running``), as are the other running means
     running_moments: torch.Tensor | None = None
-    # the data's mean ``detail_link`` (``data_link``), the link term's target, and the running mean of
-    # G's; derived and restarted like the moments, not saved
+    # the data's mean ``detail_link`` (``data_link``), the link term's target, derived like the moments,
+    # and the running mean of G's, saved like the moments'
     link_target: float | None = None
     running_link: float | None = None
     # (R, R) bool: where the link is measured (the skin regions, ``metrics.detail_region``; None: the
@@ -165,16 +165,16 @@ class TrainState:
     link_mask: torch.Tensor | None = None
     # (R, R) uint8: the UV region labels the coherence and band terms measure per region
     # (``data.load_regions``); set by the caller, not saved. (k,) float32: the data's per-region albedo
-    # coherence (``data_coherence``), the term's target, and G's running one; derived and restarted like the link
+    # coherence (``data_coherence``), the term's target, and G's running one; derived and saved like the link's
     regions: torch.Tensor | None = None
     coherence_target: torch.Tensor | None = None
     running_coherence: torch.Tensor | None = None
     # (k * band_levels * 3,) float32: the data's per-region albedo band RMS (``data_band``), the band
-    # term's target, and G's running one; derived and restarted like the link
+    # term's target, and G's running one; derived and saved like the link's
     band_target: torch.Tensor | None = None
     running_band: torch.Tensor | None = None
     # (k * 16 * 9,) float32: the data's per-region finest-band albedo spectra (``data_spectrum``), the
-    # spectrum term's target, and G's running ones; derived and restarted like the link
+    # spectrum term's target, and G's running ones; derived and saved like the link's
     spectrum_target: torch.Tensor | None = None
     running_spectrum: torch.Tensor | None = None
 
@@ -368,6 +368,13 @@ def set_branch_noise(state: TrainState, strength: float) -> None:
                     p.fill_(strength)
 
 
+def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]:
+    """What each per-region drift term measures: name -> f(fake (B, 7, R, R), regions) -> (B, m). One table
+    for ``train_step`` and ``warm_running``, so that a warm start measures what the term pulls."""
+    return {"coherence": _albedo_coherence, "band": lambda x, regions: _albedo_bands(x, regions, t.band_levels),
+            "spectrum": _albedo_spectra}
+
+
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
                  running: torch.Tensor | None, measure: Callable[[torch.Tensor], torch.Tensor],
                  loss: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
@@ -427,15 +434,16 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         link = float(links.detach().mean())
         state.running_link = link if state.running_link is None else state.running_link + (1 - t.link_beta) * (link - state.running_link)
         loss_link = link_loss(links, state.running_link, state.link_target)
+    measure = _region_measures(t)
     loss_coh, state.running_coherence, coh_gap = _region_term(
         "coherence", t.coherence_weight, t.coherence_beta, state.regions, state.coherence_target, state.running_coherence,
-        lambda regions: _albedo_coherence(fake, regions), coherence_loss, lambda run, tgt: float((run - tgt).abs().mean()))
+        lambda regions: measure["coherence"](fake, regions), coherence_loss, lambda run, tgt: float((run - tgt).abs().mean()))
     loss_band, state.running_band, band_gap = _region_term(
         "band", t.band_weight, t.band_beta, state.regions, state.band_target, state.running_band,
-        lambda regions: _albedo_bands(fake, regions, t.band_levels), band_loss, lambda run, tgt: float((run / tgt - 1).abs().mean()))
+        lambda regions: measure["band"](fake, regions), band_loss, lambda run, tgt: float((run / tgt - 1).abs().mean()))
     loss_spec, state.running_spectrum, spec_gap = _region_term(
         "spectrum", t.spectrum_weight, t.spectrum_beta, state.regions, state.spectrum_target, state.running_spectrum,
-        lambda regions: _albedo_spectra(fake, regions), spectrum_loss, _spectrum_gap)
+        lambda regions: measure["spectrum"](fake, regions), spectrum_loss, _spectrum_gap)
     state.opt_G.zero_grad(set_to_none=True)
     (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
      + t.coherence_weight * loss_coh + t.band_weight * loss_band + t.spectrum_weight * loss_spec).backward()
@@ -536,12 +544,11 @@ def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
     pulls along a noisy direction for ~1 / (1 - beta) steps. Needs the targets set (``train`` does that).
     Returns the names of the terms started."""
     t, G = state.train, state.G
+    region = _region_measures(t)
     measures = {
         "running_moments": (t.moment_drift_weight, batch_moments),
         "running_link": (t.link_weight, lambda x: detail_link(x, state.link_mask).mean()),
-        "running_coherence": (t.coherence_weight, lambda x: _albedo_coherence(x, state.regions).mean(0)),
-        "running_band": (t.band_weight, lambda x: _albedo_bands(x, state.regions, t.band_levels).mean(0)),
-        "running_spectrum": (t.spectrum_weight, lambda x: _albedo_spectra(x, state.regions).mean(0)),
+        **{f"running_{k}": (getattr(t, f"{k}_weight"), lambda x, f=f: f(x, state.regions).mean(0)) for k, f in region.items()},
     }
     todo = {k: f for k, (w, f) in measures.items() if w > 0 and getattr(state, k) is None}
     if not todo or batches < 1:
