@@ -966,6 +966,107 @@ def test_warm_running_starts_missing_running_means_from_fakes_and_keeps_the_rng(
     assert state.running_coherence is None and state.running_link is None  # their terms are off
     band = state.running_band.clone()
     assert warm_running(state) == [] and torch.equal(state.running_band, band)  # a running mean present is kept
+    # other regions or bands on resume (--hairline-region, --band-levels): a running mean of another shape restarts
+    regions2 = regions.clone()
+    regions2[:4] = 8
+    with torch.no_grad():
+        state.band_target = _albedo_bands(data, regions2, 1).mean(0)
+    state.regions = regions2
+    assert warm_running(state, batches=2) == ["band"] and state.running_band.shape == state.band_target.shape == (6,)
+
+
+def test_hairline_band_is_the_data_hairline_and_a_region_of_its_own():
+    """--hairline-region: the per-region terms measure the data's hairline (a soft hairline told G's maps from
+    the data's, docs/brdf_gan.md) as a label of its own, carved from the labels around it."""
+    import cv2
+
+    from fitme_cli.reflectance.gan.data import HAIRLINE_LABEL, hairline_band, hairline_zones, load_regions
+    from fitme_cli.shape.regions import REGIONS
+
+    assert HAIRLINE_LABEL == len(REGIONS)
+    base, band = load_regions(256), hairline_band(256)
+    assert band.shape == (256, 256) and band.dtype == torch.bool
+    assert 2000 < int(band.sum()) < 3200  # ~7 texels wide around the face and across the neck
+    assert cv2.connectedComponents(band.numpy().astype(np.uint8), connectivity=8)[0] == 2  # one ring: no eye holes
+    assert not bool((band & (base == REGIONS.index("eyes"))).any())
+    # it runs between the scalp and the face: both lie just beside it
+    grown = torch.from_numpy(cv2.dilate(band.numpy().astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)) & ~band
+    beside = set(torch.unique(base[grown]).tolist())
+    assert REGIONS.index("scalp") in beside and REGIONS.index("forehead") in beside
+    carved = load_regions(256, hairline=True)
+    assert torch.equal(carved == HAIRLINE_LABEL, band) and torch.equal(carved[~band], base[~band])
+    zones = hairline_zones(256)  # the card's: the band between a face-side and a scalp-side ring as wide
+    assert torch.equal(zones == 1, band) and set(torch.unique(zones).tolist()) == {0, 1, 2, 255}
+    assert 0.8 < int((zones == 0).sum()) / int(band.sum()) < 1.6 and 0.8 < int((zones == 2).sum()) / int(band.sum()) < 1.6
+    assert float((base[zones == 2] == REGIONS.index("scalp")).float().mean()) > 0.98  # beyond it, the scalp
+    small = load_regions(16, hairline=True)
+    assert small.shape == (16, 16) and bool((small == HAIRLINE_LABEL).any())
+    with pytest.raises(ValueError, match="expected a resolution >= 1, got 0"):
+        hairline_band(0)
+
+
+def test_hairline_region_needs_a_per_region_term_and_the_label():
+    with pytest.raises(ValueError, match="hairline_region must be a bool, got 1"):
+        TrainSettings(hairline_region=1)
+    with pytest.raises(ValueError, match="hairline_region needs a per-region term"):
+        TrainSettings(hairline_region=True)
+    state = new_state(TINY, TrainSettings(batch=4, kimg=0.004, band_weight=0.5, hairline_region=True))
+    state.regions = torch.full((16, 16), 2, dtype=torch.uint8)  # built without the hairline
+    with pytest.raises(ValueError, match=r"no hairline label \(8\); build it with data.load_regions"):
+        train(state, _tiny_data(), None, progress=False)
+
+
+def test_blind_rounds_hide_eight_of_each_and_score_counts_hits(tmp_path):
+    import cv2
+
+    from fitme_cli.reflectance.gan.blind import make_rounds, score
+
+    G = Generator(TINY).eval()
+    data = _tiny_data()
+    paths = make_rounds(G, data, tmp_path, rounds=2, seed=3)
+    assert [p.name for p in paths] == ["round0_a.png", "round0_b.png", "round1_a.png", "round1_b.png"]
+    assert cv2.imread(str(paths[0])).shape == (8 * (16 + 4), 3 * 16, 3)
+    key = json.loads((tmp_path / "key.json").read_text())
+    assert len(key) == 32 and sorted(key.values()).count("G") == 16
+    assert all(sum(v == "G" for k, v in key.items() if k.startswith(f"{r}-")) == 8 for r in (0, 1))
+    make_rounds(G, data, tmp_path / "again", rounds=2, seed=3)
+    assert json.loads((tmp_path / "again" / "key.json").read_text()) == key  # the seed fixes the order
+    # the data rows are the data's own triplets: one of them equals a data sample's drawing
+    from fitme_cli.reflectance.gan.blind import _triplets
+
+    drawn = cv2.cvtColor(cv2.imread(str(paths[0])), cv2.COLOR_BGR2RGB)
+    rows = [drawn[2 + 20 * j : 18 + 20 * j] for j in range(8)]
+    ours = _triplets(GanImages.split(data.float()), G)
+    first_data = next(j for j in range(8) if key[f"0-{j}"] == "data")
+    assert any(np.array_equal(rows[first_data][:, 20:], o[:, 20:]) for o in ours)  # right of the number
+    right = [k for k, v in key.items() if v == "G"]
+    s = score(key, right)
+    assert (s.correct, s.total, s.missed) == (32, 32, ()) and s.p_value == 2.0**-32
+    s = score(key, list(key))  # everything called generated: half right, a coin's score
+    assert s.correct == 16 and 0.5 < s.p_value < 0.6
+    s = score({"0-0": "G", "0-1": "data", "0-2": "G", "0-3": "data"}, ["0-0", "0-1", "0-2"])
+    assert (s.correct, s.missed, s.p_value) == (3, ("0-1",), 5 / 16)
+    with pytest.raises(ValueError, match="not in the key"):
+        score(key, ["9-9"])
+    from fitme_cli.reflectance.gan.blind import main as blind_main
+
+    (tmp_path / "guesses.json").write_text(json.dumps({"G": right[:-1]}))
+    (tmp_path / "card.json").write_text(json.dumps({"name": "brdf_gan", "metrics": {"x": 1}}))
+    assert blind_main(["score", str(tmp_path), str(tmp_path / "guesses.json"), "--card", str(tmp_path / "card.json"),
+                       "--note", "judged by a test"]) == 0
+    card = json.loads((tmp_path / "card.json").read_text())
+    assert card["metrics"] == {"x": 1} and card["person_test"]["right"] == 31 and card["person_test"]["of"] == 32
+    assert card["person_test"]["p_value_by_guessing"] == pytest.approx(33 / 2**32, rel=1e-2)
+    assert card["person_test"]["note"] == "judged by a test"
+    (tmp_path / "bad.json").write_text(json.dumps({"G": ["7-0"]}))
+    assert blind_main(["score", str(tmp_path), str(tmp_path / "bad.json")]) == 2  # a clean message, not a traceback
+    (tmp_path / "bad.json").write_text("[1, 2]")
+    assert blind_main(["score", str(tmp_path), str(tmp_path / "bad.json")]) == 2
+    assert blind_main(["score", str(tmp_path / "nowhere"), str(tmp_path / "guesses.json")]) == 2
+    with pytest.raises(ValueError, match=r"expected data of shape \(N >= 8, 7, 16, 16\)"):
+        make_rounds(G, data[:4], tmp_path)
+    with pytest.raises(ValueError, match="expected rounds >= 1, got 0"):
+        make_rounds(G, data, tmp_path, rounds=0)
 
 
 def test_mean_image_is_fixed_and_old_checkpoints_migrate(tmp_path):
@@ -1079,10 +1180,11 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01",
-                                  "--branch-noise", "0.05", "--threads", "1"])
+                                  "--hairline-region", "--branch-noise", "0.05", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
+    assert state.train.hairline_region is True
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
     # the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
@@ -1102,6 +1204,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output
+    r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "h"), "--resolution", "16", "--hairline-region"])
+    assert r.exit_code == 2 and "hairline_region needs a per-region term" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--batch", "8"])
     assert r.exit_code == 2 and "--batch cannot change on --resume" in r.output
     # the channels may grow on resume (gan/widen.py); nothing else of the architecture may change
@@ -1204,7 +1308,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
     assert set(m) == {"per_channel", "std_ratio_by_scale", "frechet_reflectance_features", "region_albedo_q10_q50_q90",
                       "albedo_band_ratio_by_region", "albedo_spectrum_tv_by_region", "modality_consistency",
-                      "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step"}
+                      "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step", "albedo_band_ratio_hairline"}
+    hair = m["albedo_band_ratio_hairline"]
+    assert list(hair) == ["face_side", "hairline", "scalp_side"]
+    assert all(len(v) == 3 and all(np.isfinite(b) and b > 0 for b in v) for v in hair.values())
     coh = m["strand_coherence_albedo_normal_x"]
     assert set(coh) == set(m["region_albedo_q10_q50_q90"]) == set(m["albedo_band_ratio_by_region"])
     assert all(len(v) == 3 and all(np.isfinite(b) and b > 0 for b in v) for v in m["albedo_band_ratio_by_region"].values())

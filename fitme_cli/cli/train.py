@@ -43,7 +43,7 @@ def _stop_requests():
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
-                "coherence_weight", "band_weight", "band_levels", "spectrum_weight")
+                "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "hairline_region")
 
 
 @click.command("train")
@@ -91,6 +91,9 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--spectrum-weight", type=click.FloatRange(min=0),
               help="Pull the running per-region spectrum of the finest band of G's albedo to the data's: where the grain "
                    "sits in frequency, against a regular lattice (not in the paper; may change on --resume). [0]")
+@click.option("--hairline-region/--no-hairline-region", default=None,
+              help="The per-region terms also measure the data's hairline as a region of its own, against a soft "
+                   "hairline (not in the paper; may change on --resume). [off]")
 @click.option("--branch-noise", type=click.FloatRange(-1, 1),
               help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
                    "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")
@@ -163,7 +166,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
                       "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
-                      "spectrum_weight")
+                      "spectrum_weight", "hairline_region")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:
@@ -221,7 +224,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     if state.train.link_weight > 0:
         state.link_mask = detail_region(load_regions(gan_settings.resolution))  # where --link-weight measures
     if state.train.coherence_weight > 0 or state.train.band_weight > 0 or state.train.spectrum_weight > 0:
-        state.regions = load_regions(gan_settings.resolution)  # where the per-region terms measure
+        # where the per-region terms measure
+        state.regions = load_regions(gan_settings.resolution, hairline=state.train.hairline_region)
     if branch_noise is not None:
         set_branch_noise(state, branch_noise)
         click.echo(f"branched layers' noise strength set to {branch_noise}", err=True)

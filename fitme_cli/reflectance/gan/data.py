@@ -17,7 +17,7 @@ import torch
 from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
-__all__ = ["find_samples", "load_sample", "load_dataset", "load_regions"]
+__all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "HAIRLINE_LABEL"]
 
 _KINDS = ("albedo", "specular", "normals")
 
@@ -98,11 +98,57 @@ def load_dataset(data_dir: Path, s: GanSettings, limit: int | None = None, progr
     return out
 
 
-def load_regions(resolution: int) -> torch.Tensor:
-    """(R, R) uint8: the shape model's UV region labels (255 unmapped) at the maps' resolution (nearest)."""
+# the per-region drift terms' extra label (``load_regions(hairline=True)``), after shape.regions.REGIONS' 0-7
+HAIRLINE_LABEL = 8
+# signed distance into the scalp (UV units) the hairline band spans: ``fitme dataset`` ramps hair in over
+# 0.016 from a hairline 0-0.006 inside the scalp edge, ragged by ~0.006 (skin_data.generate_sample), so
+# -0.01 .. 0.016 holds the edge of nearly every sample: 7 texels wide at 256^2
+_HAIRLINE_UV = (-0.01, 0.016)
+
+
+def hairline_zones(resolution: int) -> torch.Tensor:
+    """(R, R) uint8: the training data's hairline (``fitme dataset``'s layout, ``skin_data.SkinLayout.hair_dist``
+    within ``_HAIRLINE_UV``) labelled 1, the face side of it 0 and the scalp side 2 (each as wide as the band,
+    0.026 UV), 255 elsewhere. Below 64^2, the 64^2 zones resized (nearest)."""
+    from ...perception.registry import ensure_models
+    from ..skin_data import skin_layout
+
+    if resolution < 1:
+        raise ValueError(f"expected a resolution >= 1, got {resolution}")
+    size = max(resolution, 64)
+    dist = skin_layout(ensure_models(["shape_model"]), size).hair_dist
+    lo, hi = _HAIRLINE_UV
+    band = ((dist > lo) & (dist <= hi)).astype(np.uint8)
+    # the eye holes are unmapped, which the layout counts as scalp: their rings are small separate
+    # components, the hairline is the largest
+    _, comp, stats, _ = cv2.connectedComponentsWithStats(band, connectivity=8)
+    band = comp == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    width = max(1, round((hi - lo) * size))
+    near = cv2.dilate(band.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1,) * 2)) > 0
+    zones = np.full((size, size), 255, np.uint8)
+    zones[near & (dist <= lo)] = 0
+    zones[near & (dist > hi)] = 2
+    zones[band] = 1
+    if size != resolution:
+        zones = cv2.resize(zones, (resolution,) * 2, interpolation=cv2.INTER_NEAREST)
+    return torch.from_numpy(zones)
+
+
+def hairline_band(resolution: int) -> torch.Tensor:
+    """(R, R) bool: the texels around the training data's hairline (``hairline_zones`` 1)."""
+    return hairline_zones(resolution) == 1
+
+
+def load_regions(resolution: int, hairline: bool = False) -> torch.Tensor:
+    """(R, R) uint8: the shape model's UV region labels (255 unmapped) at the maps' resolution (nearest).
+    ``hairline``: the texels of ``hairline_band`` relabelled ``HAIRLINE_LABEL`` (the BRDF-GAN's
+    ``TrainSettings.hairline_region``), taken from the scalp, forehead, skin or unmapped border around it."""
     from safetensors.numpy import load_file
 
     from ...perception.registry import ensure_models
 
     region_uv = load_file(str(ensure_models(["shape_model"]) / "shape_model.safetensors"))["region_uv"]
-    return torch.from_numpy(cv2.resize(region_uv, (resolution,) * 2, interpolation=cv2.INTER_NEAREST))
+    regions = torch.from_numpy(cv2.resize(region_uv, (resolution,) * 2, interpolation=cv2.INTER_NEAREST))
+    if hairline:
+        regions[hairline_band(resolution)] = HAIRLINE_LABEL
+    return regions

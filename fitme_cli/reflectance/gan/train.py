@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from .ada import augment
+from .data import HAIRLINE_LABEL
 from .latents import sample_z
 from .metrics import detail_link, region_band_energy, region_coherence, region_spectrum
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
@@ -94,6 +95,13 @@ class TrainSettings:
     # Drift-style like the band term. 0: off (the paper)
     spectrum_weight: float = 0.0
     spectrum_beta: float = 0.99  # per-step decay of the running spectra
+    # not in the paper: the per-region terms above also measure the data's hairline as a region of its
+    # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
+    # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
+    # face beside it 1.1-1.4 (``report``'s ``albedo_band_ratio_hairline``: the edge smeared into the
+    # face), and a soft hairline told G's maps from the data's in 30-31 of 32 blind picks (docs/brdf_gan.md). The caller
+    # builds ``TrainState.regions`` accordingly; ``train`` checks that it did
+    hairline_region: bool = False
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -130,6 +138,11 @@ class TrainSettings:
             raise ValueError(f"spectrum_weight must be finite and >= 0, got {self.spectrum_weight}")
         if not 0 <= self.spectrum_beta < 1:
             raise ValueError(f"spectrum_beta must be in [0, 1), got {self.spectrum_beta}")
+        if not isinstance(self.hairline_region, bool):
+            raise ValueError(f"hairline_region must be a bool, got {self.hairline_region!r}")
+        if self.hairline_region and not (self.coherence_weight > 0 or self.band_weight > 0 or self.spectrum_weight > 0):
+            raise ValueError("hairline_region needs a per-region term: coherence_weight, band_weight or spectrum_weight > 0, "
+                             f"got {self.coherence_weight}, {self.band_weight}, {self.spectrum_weight}")
 
 
 @dataclass
@@ -538,10 +551,11 @@ _WARM_BATCHES = 16
 
 
 def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
-    """Start every active drift term whose running mean is missing from the mean over ``batches`` batches
-    of G's fakes, not from the first training batch alone; the global RNG is left as it was. For resuming a
-    checkpoint from before the running means were saved (2026-11-27): restarted from one batch, each term
-    pulls along a noisy direction for ~1 / (1 - beta) steps. Needs the targets set (``train`` does that).
+    """Start every active drift term whose running mean is missing, or of another shape than its target,
+    from the mean over ``batches`` batches of G's fakes, not from the first training batch alone; the global
+    RNG is left as it was. For resuming a checkpoint from before the running means were saved (2026-11-27),
+    or with other regions or bands: restarted from one batch, each term pulls along a noisy direction for
+    ~1 / (1 - beta) steps. Needs the targets set (``train`` does that).
     Returns the names of the terms started."""
     t, G = state.train, state.G
     region = _region_measures(t)
@@ -550,7 +564,14 @@ def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
         "running_link": (t.link_weight, lambda x: detail_link(x, state.link_mask).mean()),
         **{f"running_{k}": (getattr(t, f"{k}_weight"), lambda x, f=f: f(x, state.regions).mean(0)) for k, f in region.items()},
     }
-    todo = {k: f for k, (w, f) in measures.items() if w > 0 and getattr(state, k) is None}
+    targets = {"running_coherence": state.coherence_target, "running_band": state.band_target,
+               "running_spectrum": state.spectrum_target}
+
+    def missing(k: str) -> bool:  # or restarting: e.g. --band-levels or --hairline-region changed on resume
+        run, tgt = getattr(state, k), targets.get(k)
+        return run is None or (tgt is not None and run.shape != tgt.shape)
+
+    todo = {k: f for k, (w, f) in measures.items() if w > 0 and missing(k)}
     if not todo or batches < 1:
         return []
     rng = torch.get_rng_state()
@@ -737,7 +758,11 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if state.regions is None:
             raise ValueError(f"train: spectrum_weight {t.spectrum_weight} needs state.regions (the UV region labels)")
         state.spectrum_target = data_spectrum(data, state.regions)
-    if state.nimg > 0:  # a resume: a checkpoint from before 2026-11-27 holds no running means
+    if t.hairline_region and (state.regions is None or not bool((state.regions == HAIRLINE_LABEL).any())):
+        raise ValueError("train: hairline_region is on but state.regions has no hairline label "
+                         f"({HAIRLINE_LABEL}); build it with data.load_regions(resolution, hairline=True)")
+    if state.nimg > 0:  # a resume: a checkpoint from before 2026-11-27 holds no running means, and one whose
+        # regions or bands changed holds running means of another shape
         started = warm_running(state)
         if started and progress:
             print(f"drift terms' running means started from {_WARM_BATCHES} batches of fakes: {', '.join(started)}",

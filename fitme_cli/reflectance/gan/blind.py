@@ -1,0 +1,159 @@
+"""The card's visual bar as a person's test: can someone tell G's triplets from the training data's?
+
+Each round shows 16 triplets (albedo sRGB | specular ×3 | normals, full resolution), 8 generated and 8 from
+the data, shuffled by a seed the judge does not see, in two pictures of 8 rows, each triplet numbered.
+The judge writes down which ones are generated; ``score`` counts the hits and gives the one-sided
+binomial p-value of doing at least that well by guessing. 50 % is the bar; 31 of 32 (151.01 kimg,
+docs/brdf_gan.md) is "easily told apart".
+
+    python -m fitme_cli.reflectance.gan.blind make models/ DATA_DIR -o out/blind --rounds 2
+    (look at out/blind/round*.png only, write {"G": ["0-3", "0-5", ...]} to guesses.json)
+    python -m fitme_cli.reflectance.gan.blind score out/blind guesses.json
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import secrets
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .latents import sample_z
+from .networks import GanImages, Generator, decode_maps
+
+__all__ = ["BlindScore", "make_rounds", "score", "record_score"]
+
+_PER_SIDE = 8  # generated and data triplets per round
+
+
+@dataclass(frozen=True)
+class BlindScore:
+    correct: int  # triplets judged right (generated called generated, data called data)
+    total: int
+    p_value: float  # P(at least ``correct`` of ``total`` by coin flips)
+    missed: tuple[str, ...]  # the ids judged wrong, "round-index"
+
+
+def _triplets(imgs: GanImages, G: Generator) -> np.ndarray:
+    """(B, R, 3R, 3) uint8: albedo sRGB | specular x3 sRGB (as ``report.closeup``: the raw specular is too dark to
+    judge) | normals 2.5 n + 0.5 (as ``train.sample_grid``)."""
+    from ...ops.srgb import linear_to_srgb
+
+    m = decode_maps(imgs, G.settings)
+    spec = linear_to_srgb((3 * m.specular).clamp(0, 1)).expand(-1, 3, -1, -1)
+    x = torch.cat([linear_to_srgb(m.albedo), spec, (m.normals * 2.5 + 0.5).clamp(0, 1)], 3)
+    return (x.permute(0, 2, 3, 1).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2, seed: int | None = None) -> list[Path]:
+    """Write ``roundR_a.png`` / ``roundR_b.png`` (8 numbered triplets each) and ``key.json`` into ``out_dir``.
+    ``data``: (N, 7, R, R) network space, N >= 8 (``data.load_dataset``); G samples at psi 1 with random
+    noise, as the card does. ``seed`` None draws one from the OS, so the judge cannot know the order."""
+    import cv2
+
+    from ...io.atomic import atomic_write_bytes, atomic_write_image
+
+    r = G.settings.resolution
+    if rounds < 1:
+        raise ValueError(f"expected rounds >= 1, got {rounds}")
+    if data.ndim != 4 or data.shape[1:] != (7, r, r) or len(data) < _PER_SIDE:
+        raise ValueError(f"expected data of shape (N >= {_PER_SIDE}, 7, {r}, {r}), got {tuple(data.shape)}")
+    rng = np.random.default_rng(secrets.randbits(32) if seed is None else seed)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    key, paths = {}, []
+    for rd in range(rounds):
+        with torch.no_grad():
+            fake = _triplets(G(sample_z(_PER_SIDE, G.settings.z_dim, int(rng.integers(1 << 30))), noise_mode="random"), G)
+        real = _triplets(GanImages.split(data[rng.choice(len(data), _PER_SIDE, replace=False)].float()), G)
+        items = [("G", f) for f in fake] + [("data", d) for d in real]
+        order = rng.permutation(len(items))
+        for half in range(2):
+            rows = []
+            for j in range(_PER_SIDE):
+                k = half * _PER_SIDE + j
+                label, img = items[order[k]]
+                key[f"{rd}-{k}"] = label
+                img = img.copy()
+                cv2.putText(img, str(k), (4, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 0), 2, cv2.LINE_AA)
+                rows.append(np.pad(img, ((2, 2), (0, 0), (0, 0)), constant_values=255))
+            path = out_dir / f"round{rd}_{'ab'[half]}.png"
+            atomic_write_image(path, np.concatenate(rows, 0))
+            paths.append(path)
+    atomic_write_bytes(out_dir / "key.json", json.dumps(key, indent=0).encode())
+    return paths
+
+
+def score(key: dict[str, str], generated: list[str]) -> BlindScore:
+    """``key``: id -> "G" or "data" (``key.json``); ``generated``: the ids the judge called generated."""
+    unknown = sorted(set(generated) - set(key))
+    if unknown:
+        raise ValueError(f"guesses name ids that are not in the key: {unknown[:5]} (ids look like {next(iter(key), '0-0')!r})")
+    if any(v not in ("G", "data") for v in key.values()):
+        raise ValueError(f"expected key values 'G' or 'data', got {sorted(set(key.values()))}")
+    called = set(generated)
+    missed = tuple(k for k, v in key.items() if (k in called) != (v == "G"))
+    n, c = len(key), len(key) - len(missed)
+    p = sum(math.comb(n, i) for i in range(c, n + 1)) / 2**n
+    return BlindScore(c, n, p, missed)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    mk = sub.add_parser("make", help="write the rounds and the key")
+    mk.add_argument("generator", type=Path, help="a models folder (brdf_gan.safetensors) or a training checkpoint")
+    mk.add_argument("data_dir", type=Path)
+    mk.add_argument("-o", "--out", type=Path, required=True)
+    mk.add_argument("--rounds", type=int, default=2)
+    sc = sub.add_parser("score", help="score a judge's guesses against the key")
+    sc.add_argument("out", type=Path)
+    sc.add_argument("guesses", type=Path, help='JSON {"G": ["0-3", ...]}: the triplets judged generated')
+    sc.add_argument("--card", type=Path, help="also record the score as the model card's person_test (brdf_gan.json)")
+    sc.add_argument("--note", default="", help="recorded with it: who judged, what gave G away")
+    args = ap.parse_args(argv)
+    if args.cmd == "make":
+        from .data import load_dataset
+        from .store import load_generator
+        from .train import load_checkpoint
+
+        G = load_checkpoint(args.generator).G_ema if args.generator.is_file() else load_generator(args.generator)
+        data = load_dataset(args.data_dir, G.settings, progress=False)
+        for p in make_rounds(G, data, args.out, args.rounds):
+            print(p)
+        return 0
+    try:
+        key = json.loads((args.out / "key.json").read_text())
+        guesses = json.loads(args.guesses.read_text())
+        if not isinstance(guesses, dict) or not isinstance(guesses.get("G"), list):
+            raise ValueError(f'expected {args.guesses} to hold {{"G": ["0-3", ...]}}, got {str(guesses)[:80]}')
+        s = score(key, guesses["G"])
+    except (OSError, ValueError) as e:  # json.JSONDecodeError is a ValueError
+        print(f"blind score: {e}", file=sys.stderr)
+        return 2
+    print(f"{s.correct} of {s.total} right ({100 * s.correct / s.total:.0f} %), p = {s.p_value:.2g} by guessing; "
+          f"wrong: {', '.join(s.missed) or 'none'}")
+    if args.card:
+        record_score(args.card, s, args.note)
+    return 0
+
+
+def record_score(card_path: Path, s: BlindScore, note: str) -> None:
+    """Write ``s`` into a model card (JSON) as ``person_test``, atomically; the rest of the card is kept."""
+    from ...io.atomic import atomic_write_bytes
+
+    card = json.loads(Path(card_path).read_text())
+    card["person_test"] = {"right": s.correct, "of": s.total, "p_value_by_guessing": float(f"{s.p_value:.3g}"),
+                           "note": note, "how": "python -m fitme_cli.reflectance.gan.blind (docs/brdf_gan.md)"}
+    atomic_write_bytes(Path(card_path), (json.dumps(card, indent=2) + "\n").encode())
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
