@@ -124,9 +124,16 @@ def main(argv: list[str] | None = None) -> int:
         from .store import load_generator
         from .train import load_checkpoint
 
-        G = load_checkpoint(args.generator).G_ema if args.generator.is_file() else load_generator(args.generator)
-        data = load_dataset(args.data_dir, G.settings, progress=False)
-        for p in make_rounds(G, data, args.out, args.rounds):
+        from ...errors import FitmeError
+
+        try:
+            G = load_checkpoint(args.generator).G_ema if args.generator.is_file() else load_generator(args.generator)
+            data = load_dataset(args.data_dir, G.settings, progress=False)
+            paths = make_rounds(G, data, args.out, args.rounds)
+        except (FitmeError, OSError, ValueError) as e:
+            print(f"blind make: {e}", file=sys.stderr)
+            return 2
+        for p in paths:
             print(p)
         return 0
     try:
