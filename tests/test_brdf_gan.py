@@ -1064,6 +1064,7 @@ def test_blind_rounds_hide_eight_of_each_and_score_counts_hits(tmp_path):
     assert blind_main(["score", str(tmp_path), str(tmp_path / "bad.json")]) == 2
     assert blind_main(["score", str(tmp_path / "nowhere"), str(tmp_path / "guesses.json")]) == 2
     assert blind_main(["make", str(tmp_path / "no_models"), str(tmp_path), "-o", str(tmp_path / "m")]) == 2
+    assert blind_main(["score", str(tmp_path), str(tmp_path / "guesses.json"), "--card", str(tmp_path / "no_card.json")]) == 2
     with pytest.raises(ValueError, match=r"expected data of shape \(N >= 8, 7, 16, 16\)"):
         make_rounds(G, data[:4], tmp_path)
     with pytest.raises(ValueError, match="expected rounds >= 1, got 0"):

@@ -119,12 +119,12 @@ def main(argv: list[str] | None = None) -> int:
     sc.add_argument("--card", type=Path, help="also record the score as the model card's person_test (brdf_gan.json)")
     sc.add_argument("--note", default="", help="recorded with it: who judged, what gave G away")
     args = ap.parse_args(argv)
+    from ...errors import FitmeError
+
     if args.cmd == "make":
         from .data import load_dataset
         from .store import load_generator
         from .train import load_checkpoint
-
-        from ...errors import FitmeError
 
         try:
             G = load_checkpoint(args.generator).G_ema if args.generator.is_file() else load_generator(args.generator)
@@ -142,13 +142,13 @@ def main(argv: list[str] | None = None) -> int:
         if not isinstance(guesses, dict) or not isinstance(guesses.get("G"), list):
             raise ValueError(f'expected {args.guesses} to hold {{"G": ["0-3", ...]}}, got {str(guesses)[:80]}')
         s = score(key, guesses["G"])
-    except (OSError, ValueError) as e:  # json.JSONDecodeError is a ValueError
+        print(f"{s.correct} of {s.total} right ({100 * s.correct / s.total:.0f} %), p = {s.p_value:.2g} by guessing; "
+              f"wrong: {', '.join(s.missed) or 'none'}")
+        if args.card:
+            record_score(args.card, s, args.note)
+    except (FitmeError, OSError, ValueError) as e:  # json.JSONDecodeError is a ValueError
         print(f"blind score: {e}", file=sys.stderr)
         return 2
-    print(f"{s.correct} of {s.total} right ({100 * s.correct / s.total:.0f} %), p = {s.p_value:.2g} by guessing; "
-          f"wrong: {', '.join(s.missed) or 'none'}")
-    if args.card:
-        record_score(args.card, s, args.note)
     return 0
 
 

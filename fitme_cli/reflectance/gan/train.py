@@ -559,19 +559,19 @@ def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
     Returns the names of the terms started."""
     t, G = state.train, state.G
     region = _region_measures(t)
+    # running mean -> (weight, measure, target whose shape it must have; None: fixed shape)
     measures = {
-        "running_moments": (t.moment_drift_weight, batch_moments),
-        "running_link": (t.link_weight, lambda x: detail_link(x, state.link_mask).mean()),
-        **{f"running_{k}": (getattr(t, f"{k}_weight"), lambda x, f=f: f(x, state.regions).mean(0)) for k, f in region.items()},
+        "running_moments": (t.moment_drift_weight, batch_moments, None),
+        "running_link": (t.link_weight, lambda x: detail_link(x, state.link_mask).mean(), None),
+        **{f"running_{k}": (getattr(t, f"{k}_weight"), lambda x, f=f: f(x, state.regions).mean(0), getattr(state, f"{k}_target"))
+           for k, f in region.items()},
     }
-    targets = {"running_coherence": state.coherence_target, "running_band": state.band_target,
-               "running_spectrum": state.spectrum_target}
 
-    def missing(k: str) -> bool:  # or restarting: e.g. --band-levels or --hairline-region changed on resume
-        run, tgt = getattr(state, k), targets.get(k)
-        return run is None or (tgt is not None and run.shape != tgt.shape)
+    def missing(k: str, target: torch.Tensor | None) -> bool:  # or of another shape: --band-levels or --hairline-region changed
+        run = getattr(state, k)
+        return run is None or (target is not None and run.shape != target.shape)
 
-    todo = {k: f for k, (w, f) in measures.items() if w > 0 and missing(k)}
+    todo = {k: f for k, (w, f, target) in measures.items() if w > 0 and missing(k, target)}
     if not todo or batches < 1:
         return []
     rng = torch.get_rng_state()
