@@ -721,6 +721,103 @@ def test_band_weight_moves_the_fakes_fine_detail(tmp_path):
         TrainSettings(band_levels=0)
 
 
+def _relief_ref(lum: torch.Tensor, nxy: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """The slow, obvious region_relief: numpy's correlation of the finest bands over each region's texels."""
+    from fitme_cli.reflectance.gan.metrics import _bandpass, region_labels
+
+    band = _bandpass(torch.cat([lum[:, None], nxy], 1).double(), 1)[0].numpy()
+    out = np.zeros((len(lum), len(region_labels(regions)), 2))
+    for j, lab in enumerate(region_labels(regions)):
+        m = (regions == lab).numpy()
+        for i in range(len(lum)):
+            for c in range(2):
+                out[i, j, c] = np.corrcoef(band[i, 0][m], band[i, 1 + c][m])[0, 1]
+    return torch.from_numpy(out)
+
+
+def _bumps(r: int = 32, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """(r, r) height field of random round bumps 2 texels wide, and its (2, r, r) normals' x and y (+y up)."""
+    g = torch.Generator().manual_seed(seed)
+    h = torch.zeros(r, r)
+    yy, xx = torch.meshgrid(torch.arange(float(r)), torch.arange(float(r)), indexing="ij")
+    for cy, cx in (torch.rand(40, 2, generator=g) * r).tolist():
+        h += torch.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / 2.0)
+    dx = torch.gradient(h, dim=1)[0]
+    dy = -torch.gradient(h, dim=0)[0]  # rows go down, v up
+    n = torch.stack([-dx, -dy, torch.ones_like(h)])
+    return h, (n / n.norm(dim=0))[:2]
+
+
+def test_region_relief_matches_reference_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import region_relief
+
+    r = 32
+    regions = _two_regions(r)
+    g = torch.Generator().manual_seed(0)
+    lum, nxy = torch.rand(3, r, r, generator=g), torch.randn(3, 2, r, r, generator=g)
+    c = region_relief(lum, nxy, regions)
+    assert c.shape == (3, 2, 2)
+    torch.testing.assert_close(c.double(), _relief_ref(lum, nxy, regions), atol=1e-5, rtol=1e-4)
+    # bumps bright across their whole width (the data's strands and pores): no relief; an albedo that is the
+    # bumps' slope toward -x, a relief lit from the left: strongly correlated with the normals' x, not y
+    # (means over 4 fields: one region holds ~13 bumps, and a single field's correlation is noisy by ~0.1)
+    h, n = (torch.stack(t) for t in zip(*(_bumps(r, seed) for seed in range(4))))
+    flat_lit = region_relief(h, n, regions).mean(0)
+    assert flat_lit.abs().max() < 0.1, flat_lit
+    embossed = region_relief(-torch.gradient(h, dim=2)[0], n, regions).mean(0)
+    assert (embossed[:, 0] > 0.9).all() and embossed[:, 1].abs().max() < 0.1, embossed
+    l64 = torch.rand(2, r, r, dtype=torch.float64, generator=g, requires_grad=True)
+    n64 = torch.randn(2, 2, r, r, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b: region_relief(a, b, regions), (l64, n64))
+    flat = torch.full((1, r, r), 0.5, requires_grad=True)
+    out = region_relief(flat, nxy[:1], regions)
+    out.sum().backward()
+    assert out.abs().max() == 0 and torch.isfinite(flat.grad).all()  # a flat albedo: 0, no NaN gradient
+    with pytest.raises(ValueError, match=r"expected float \(N, R, R\) luminance, \(N, 2, R, R\) normals .* got \(3, 32, 32\) torch.float32, \(3, 3, 32, 32\)"):
+        region_relief(lum, torch.randn(3, 3, r, r), regions)
+    with pytest.raises(ValueError, match="at least one mapped region"):
+        region_relief(lum, nxy, torch.full((r, r), 255, dtype=torch.uint8))
+
+
+def test_relief_weight_moves_the_fakes_relief(tmp_path):
+    """Same seed, same steps: with the relief term G's albedo-normal correlation moves toward a target above and
+    one below where it starts; it needs its regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _albedo_relief, data_relief
+
+    data = _tiny_data()
+    regions = _two_regions()
+    torch.testing.assert_close(data_relief(data, regions, chunk=4), _albedo_relief(data.float(), regions).mean(0))
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def run(weight, shift):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, relief_weight=weight))
+        state.regions = regions
+        with torch.no_grad():
+            base = _albedo_relief(state.G(z).cat(), regions).mean(0)
+        state.relief_target = base + shift
+        torch.manual_seed(0)
+        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+               for i in range(30)]
+        with torch.no_grad():
+            return float((_albedo_relief(state.G(z).cat(), regions).mean(0) - base).mean()), out
+
+    off, l_off = run(0.0, 0.0)
+    up, l_up = run(20.0, 0.5)
+    down, _ = run(20.0, -0.5)
+    assert up > off + 0.05 and down < off - 0.05, (up, off, down)
+    assert "relief_gap" not in l_off[0] and l_up[0]["relief_gap"] == pytest.approx(0.5, abs=0.05)
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, relief_weight=1.0))
+    with pytest.raises(ValueError, match="needs state.regions and state.relief_target"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match="relief_weight 1.0 needs state.regions"):
+        train(state, data, tmp_path, progress=False)
+    with pytest.raises(ValueError, match="relief_weight must be finite and >= 0, got -1.0"):
+        TrainSettings(relief_weight=-1.0)
+    with pytest.raises(ValueError, match="relief_beta must be in"):
+        TrainSettings(relief_beta=1.0)
+    assert TrainSettings(relief_weight=1.0, side_regions=True).region_terms  # the relief term counts as one
+
+
 def _spectrum_ref(img: torch.Tensor, regions: torch.Tensor, patch: int) -> torch.Tensor:
     """The slow, obvious region_spectrum: numpy, a loop over regions and windows, the whole frequency plane
     normalised, then folded to rfft2's half plane (interior columns stand for two conjugate bins)."""
@@ -1005,6 +1102,61 @@ def test_hairline_band_is_the_data_hairline_and_a_region_of_its_own():
         hairline_band(0)
 
 
+def test_split_sides_halves_each_region_at_the_midline():
+    from fitme_cli.reflectance.gan.data import SIDE_OFFSET, load_regions, split_sides
+    from fitme_cli.shape.regions import REGIONS
+
+    r = torch.tensor([[0, 1, 1, 255], [2, 2, 255, 3], [255, 4, 4, 4], [5, 5, 5, 5]], dtype=torch.uint8)
+    want = torch.tensor([[0, 1, 17, 255], [2, 2, 255, 19], [255, 4, 20, 20], [5, 5, 21, 21]], dtype=torch.uint8)
+    assert torch.equal(split_sides(r), want) and r[0, 2] == 1  # a copy; the input is left alone
+    for bad, msg in ((r.long(), "uint8"), (r[:3], r"\(3, 4\)"), (want, "already split")):
+        with pytest.raises(ValueError, match=msg):
+            split_sides(bad)
+    base, sided = load_regions(256, hairline=True), load_regions(256, hairline=True, sides=True)
+    assert torch.equal(sided % SIDE_OFFSET, torch.where(base == 255, 255 % SIDE_OFFSET, base))
+    for name in ("brows", "eyes", "lips", "skin"):  # the layout is mirror-symmetric: each small region splits evenly
+        lab = REGIONS.index(name)
+        left, right = int((sided == lab).sum()), int((sided == lab + SIDE_OFFSET).sum())
+        assert left > 50 and 0.9 < right / left < 1.1, (name, left, right)
+
+
+def test_side_regions_see_grain_pulled_onto_one_side():
+    """The band term measured a region as one number, so grain on one eye and none on the other met the
+    target; split into sides it does not (docs/brdf_gan.md)."""
+    from fitme_cli.reflectance.gan.data import split_sides
+    from fitme_cli.reflectance.gan.train import _albedo_bands
+
+    regions = torch.full((16, 16), 255, dtype=torch.uint8)
+    regions[4:12, 2:14] = 4  # one region across the midline
+    g = torch.Generator().manual_seed(0)
+    grain = 0.2 * torch.randn(1, 1, 8, 12, generator=g)
+    even, lopsided = torch.full((2, 7, 16, 16), -0.2), torch.full((2, 7, 16, 16), -0.2)
+    even[:, :3, 4:12, 2:14] += grain  # the same grain everywhere
+    lopsided[:, :3, 4:12, 2:8] += math.sqrt(2) * grain[..., :6]  # as much in all, on one side only
+    whole = [float(_albedo_bands(x, regions, 1).mean()) for x in (even, lopsided)]
+    halves = [_albedo_bands(x, split_sides(regions), 1).view(2, 2, 3).mean((0, 2)) for x in (even, lopsided)]
+    assert abs(whole[1] / whole[0] - 1) < 0.35
+    assert abs(float(halves[0][1] / halves[0][0]) - 1) < 0.5 and float(halves[1][1] / halves[1][0]) < 0.2
+
+
+def test_side_regions_need_a_per_region_term_and_split_labels():
+    from fitme_cli.reflectance.gan.data import split_sides
+
+    with pytest.raises(ValueError, match="side_regions must be a bool, got 1"):
+        TrainSettings(side_regions=1)
+    with pytest.raises(ValueError, match="side_regions needs a per-region term"):
+        TrainSettings(side_regions=True)
+    regions = _two_regions()
+    state = new_state(TINY, TrainSettings(batch=4, kimg=0.004, band_weight=0.5, side_regions=True))
+    state.regions = regions  # not split
+    with pytest.raises(ValueError, match=r"side_regions is True but state.regions is not split"):
+        train(state, _tiny_data(), None, progress=False)
+    state = new_state(TINY, TrainSettings(batch=4, kimg=0.004, band_weight=0.5))
+    state.regions = split_sides(regions)
+    with pytest.raises(ValueError, match=r"side_regions is False but state.regions is split"):
+        train(state, _tiny_data(), None, progress=False)
+
+
 def test_hairline_region_needs_a_per_region_term_and_the_label():
     with pytest.raises(ValueError, match="hairline_region must be a bool, got 1"):
         TrainSettings(hairline_region=1)
@@ -1181,12 +1333,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
-                                  "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01",
-                                  "--hairline-region", "--branch-noise", "0.05", "--threads", "1"])
+                                  "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
+                                  "--hairline-region", "--side-regions", "--branch-noise", "0.05", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
-    assert state.train.hairline_region is True
+    assert state.train.hairline_region is True and state.train.side_regions is True and state.train.relief_weight == 2.0
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
     # the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
@@ -1199,6 +1351,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.coherence_weight == 20.0 and 0 <= lines[-1]["coherence_gap"] <= 1 and "coherence_gap" not in lines[0]
     assert state.train.band_weight == 5.0 and state.train.band_levels == 3
     assert lines[-1]["band_gap"] >= 0 and "band_gap" not in lines[0]
+    assert 0 <= lines[-1]["relief_gap"] <= 2 and "relief_gap" not in lines[0]
     # at 16^2 no region has a whole 16^2 window: the term runs, and its gap counts no region
     assert state.train.spectrum_weight == 0.01 and lines[-1]["spectrum_gap"] == 0 and "spectrum_gap" not in lines[0]
     strengths = [float(p) for n, p in state.G_ema.named_parameters() if "branches" in n and n.endswith("noise_strength")]
@@ -1310,7 +1463,14 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     m = evaluate(Generator(s), data, regions, n_fake=8, n_real=8)
     assert set(m) == {"per_channel", "std_ratio_by_scale", "frechet_reflectance_features", "region_albedo_q10_q50_q90",
                       "albedo_band_ratio_by_region", "albedo_spectrum_tv_by_region", "modality_consistency",
-                      "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step", "albedo_band_ratio_hairline"}
+                      "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step", "albedo_band_ratio_hairline",
+                      "albedo_band_ratio_by_side", "albedo_normal_relief_by_region"}
+    relief = m["albedo_normal_relief_by_region"]
+    assert set(relief) == set(m["albedo_band_ratio_by_region"])
+    assert all(len(v) == 2 and all(-1 <= c <= 1 for c in v) for r in relief.values() for v in r.values())
+    sides = m["albedo_band_ratio_by_side"]
+    assert set(sides) == set(m["albedo_band_ratio_by_region"]) and all(len(v) == 2 for v in sides.values())
+    assert all(b is None or (np.isfinite(b) and b > 0) for v in sides.values() for b in v)
     hair = m["albedo_band_ratio_hairline"]
     assert list(hair) == ["face_side", "hairline", "scalp_side"]
     assert all(len(v) == 3 and all(np.isfinite(b) and b > 0 for b in v) for v in hair.values())

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data import hairline_zones, load_dataset, load_regions
+from .data import SIDE_OFFSET, hairline_zones, load_dataset, load_regions, split_sides
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
                       modality_consistency, reflectance_features, region_albedo, region_albedo_bands, region_band_energy,
-                      region_labels, region_spectrum,
+                      region_labels, region_relief, region_spectrum,
                       spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
@@ -65,23 +65,30 @@ def _encoded(stats_mean, stats_std):
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
-             mapped: torch.Tensor, skin: torch.Tensor, zones: torch.Tensor
-             ) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts, np.ndarray, torch.Tensor, torch.Tensor]:
+             mapped: torch.Tensor, skin: torch.Tensor, zones: torch.Tensor, sides: torch.Tensor
+             ) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts, np.ndarray, torch.Tensor, torch.Tensor,
+                        torch.Tensor, torch.Tensor]:
     """One side of the comparison (generated when src is None): channel stats, reflectance features,
     modality consistency, the std by scale and the strand coherence (these three on the first 200 samples),
     the linear albedo luminance's finest-band spectra (N, k, 16, 9), and the linear albedo's band RMS
-    (mean of r, g, b) in the hairline's three zones (``data.hairline_zones``), (3, 3 bands) averaged over samples."""
-    st, fs, cm, sp, hz = _Stats(mapped), [], [], [], []
+    (mean of r, g, b) in the hairline's three zones (``data.hairline_zones``), (3, 3 bands) averaged over samples,
+    its finest band's RMS in each half of each region (``sides``: ``data.split_sides``), (k,) likewise, and
+    the per-region correlation of the albedo luminance's finest band with the normals' x and y
+    (``metrics.region_relief``), (k, 2) likewise."""
+    st, fs, cm, sp, hz, sd, rl = _Stats(mapped), [], [], [], [], [], []
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
         fs.append(reflectance_features(x, regions))
         sp.append(region_spectrum(x[:, :3].mean(1), regions))
         hz.append(region_band_energy(x[:, :3], zones).mean(3))
+        sd.append(region_band_energy(x[:, :3], sides, 1)[:, :, 0].mean(2))
+        rl.append(region_relief(x[:, :3].mean(1), x[:, 4:6], regions))
         if sum(len(c) for c in cm) < 200:
             cm.append(x)
     first = torch.cat(cm)[:200]
     return (st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
-            strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0))
+            strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0), torch.cat(sd).mean(0),
+            torch.cat(rl).mean(0))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -97,9 +104,10 @@ def evaluate_psis(G: Generator, data: torch.Tensor, regions: torch.Tensor, trunc
     mapped = regions != 255
     skin = detail_region(regions)
     zones = hairline_zones(regions.shape[0])
+    sides = split_sides(regions)
     n_real = min(n_real, len(data))
-    real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin, zones)
-    return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin, zones), real, regions, seed, psi)
+    real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin, zones, sides)
+    return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin, zones, sides), real, regions, seed, psi)
             for psi in truncation_psis]
 
 
@@ -113,8 +121,8 @@ def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
 
 
 def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncation_psi: float) -> dict:
-    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh, gan_spec, gan_hair), \
-        (data_stats, data_feats, data_cons, data_parts, data_coh, data_spec, data_hair) = gan, real
+    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh, gan_spec, gan_hair, gan_side, gan_relief), \
+        (data_stats, data_feats, data_cons, data_parts, data_coh, data_spec, data_hair, data_side, data_relief) = gan, real
     half = len(data_feats) // 2
     fm, fsd = _encoded(gan_stats.mean, gan_stats.std)
     rm, rsd = _encoded(data_stats.mean, data_stats.std)
@@ -168,6 +176,14 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
         # a soft hairline told G's maps from the data's (docs/brdf_gan.md): per zone and band, G's RMS over the data's
         "albedo_band_ratio_hairline": {zone: [round(float(g / max(float(d), 1e-12)), 3) for g, d in zip(gan_hair[j], data_hair[j])]
                                        for j, zone in enumerate(("face_side", "hairline", "scalp_side"))},
+        # grain pulled onto one side of a region told G's eyes from the data's (docs/brdf_gan.md): per region, the
+        # finest band's RMS, G's over the data's, in its [left, right] half as the UV map shows it (u < 0.5, u >= 0.5)
+        "albedo_band_ratio_by_side": _by_side(gan_side / data_side.clamp(min=1e-12), regions),
+        # an albedo embossed by its normals' slope (docs/brdf_gan.md): per region, the mean correlation of the
+        # albedo's finest band with the normals' [x, y] (the data's ~0)
+        "albedo_normal_relief_by_region": {_region_name(lab): {"data": [round(float(v), 3) for v in data_relief[j]],
+                                                               "gan": [round(float(v), 3) for v in gan_relief[j]]}
+                                           for j, lab in enumerate(region_labels(regions))},
         "modality_consistency": {"gan_matched": round(gan_cons[0], 3), "gan_mismatched": round(gan_cons[1], 3),
                                  "data_matched": round(data_cons[0], 3), "data_mismatched": round(data_cons[1], 3)},
         # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region
@@ -176,6 +192,16 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
                                              for j, lab in enumerate(region_labels(regions))},
         "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
     }
+
+
+def _by_side(ratio: torch.Tensor, regions: torch.Tensor) -> dict[str, list[float | None]]:
+    """(k,) per label of ``region_labels(split_sides(regions))`` -> region name: [left, right], rounded."""
+    labels = region_labels(split_sides(regions))
+    out: dict[str, list[float | None]] = {}
+    for lab in region_labels(regions):
+        out[_region_name(lab)] = [round(float(ratio[labels.index(lab + off)]), 3) if lab + off in labels else None
+                                  for off in (0, SIDE_OFFSET)]
+    return out
 
 
 def _region_name(label: int) -> str:

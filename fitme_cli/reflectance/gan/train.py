@@ -20,9 +20,9 @@ import torch
 import torch.nn.functional as F
 
 from .ada import augment
-from .data import HAIRLINE_LABEL
+from .data import HAIRLINE_LABEL, SIDE_OFFSET
 from .latents import sample_z
-from .metrics import detail_link, region_band_energy, region_coherence, region_spectrum
+from .metrics import detail_link, region_band_energy, region_coherence, region_relief, region_spectrum
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
@@ -95,6 +95,15 @@ class TrainSettings:
     # Drift-style like the band term. 0: off (the paper)
     spectrum_weight: float = 0.0
     spectrum_beta: float = 0.99  # per-step decay of the running spectra
+    # not in the paper: weight of a term that pulls the running per-region correlation of the albedo's
+    # finest band with the normals' x and y finest bands (``metrics.region_relief``) to the data's. The
+    # data's strands and pores are bright or dark across their whole width: ~0 in every region (|r| <= 0.012).
+    # G's albedo carried its normals' slope, a relief lit from one side: on the skin -0.26 (y) at 151.01
+    # kimg, the nose -0.36, the neck -0.24; grey hair looked embossed, the third tell in the blind test
+    # (docs/brdf_gan.md). D's joint branch sees both modalities but did not stop it. Drift-style like the
+    # coherence term. 0: off (the paper)
+    relief_weight: float = 0.0
+    relief_beta: float = 0.99  # per-step decay of the running correlations
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -102,6 +111,13 @@ class TrainSettings:
     # face), and a soft hairline told G's maps from the data's in 30-31 of 32 blind picks (docs/brdf_gan.md). The caller
     # builds ``TrainState.regions`` accordingly; ``train`` checks that it did
     hairline_region: bool = False
+    # not in the paper: the per-region terms measure each region's two halves (left and right of the UV
+    # midline, ``data.split_sides``) apart. The band term pulled each small region's grain as one number,
+    # and G reached it by texturing one side: the finest band, G over data, left / right, went from
+    # 0.89 / 0.86 (eyes), 0.77 / 0.77 (lips) at 151.01 kimg to 1.18 / 0.77, 0.78 / 1.07 at 162.07, and the
+    # viewer's left eye became an orange blob in every sample, the first tell in the blind test
+    # (docs/brdf_gan.md). Built by the caller like ``hairline_region``
+    side_regions: bool = False
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -138,11 +154,22 @@ class TrainSettings:
             raise ValueError(f"spectrum_weight must be finite and >= 0, got {self.spectrum_weight}")
         if not 0 <= self.spectrum_beta < 1:
             raise ValueError(f"spectrum_beta must be in [0, 1), got {self.spectrum_beta}")
-        if not isinstance(self.hairline_region, bool):
-            raise ValueError(f"hairline_region must be a bool, got {self.hairline_region!r}")
-        if self.hairline_region and not (self.coherence_weight > 0 or self.band_weight > 0 or self.spectrum_weight > 0):
-            raise ValueError("hairline_region needs a per-region term: coherence_weight, band_weight or spectrum_weight > 0, "
-                             f"got {self.coherence_weight}, {self.band_weight}, {self.spectrum_weight}")
+        if not (self.relief_weight >= 0 and math.isfinite(self.relief_weight)):
+            raise ValueError(f"relief_weight must be finite and >= 0, got {self.relief_weight}")
+        if not 0 <= self.relief_beta < 1:
+            raise ValueError(f"relief_beta must be in [0, 1), got {self.relief_beta}")
+        for name in ("hairline_region", "side_regions"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
+            if getattr(self, name) and not self.region_terms:
+                raise ValueError(f"{name} needs a per-region term: coherence_weight, band_weight, spectrum_weight or "
+                                 f"relief_weight > 0, got {self.coherence_weight}, {self.band_weight}, "
+                                 f"{self.spectrum_weight}, {self.relief_weight}")
+
+    @property
+    def region_terms(self) -> bool:
+        """Whether any per-region drift term is on (they need ``TrainState.regions``)."""
+        return self.coherence_weight > 0 or self.band_weight > 0 or self.spectrum_weight > 0 or self.relief_weight > 0
 
 
 @dataclass
@@ -190,6 +217,10 @@ class TrainState:
     # spectrum term's target, and G's running ones; derived and saved like the link's
     spectrum_target: torch.Tensor | None = None
     running_spectrum: torch.Tensor | None = None
+    # (k * 2,) float32: the data's per-region albedo-normal relief correlations (``data_relief``), the relief
+    # term's target, and G's running ones; derived and saved like the link's
+    relief_target: torch.Tensor | None = None
+    running_relief: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -367,6 +398,17 @@ def _spectrum_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     return float(tv[has].mean()) if bool(has.any()) else 0.0
 
 
+def _albedo_relief(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k * 2): per region, the correlation of the linear albedo luminance's
+    finest band with the normals' x and y finest bands (``metrics.region_relief``)."""
+    return region_relief(decode_albedo(x[:, :3]).mean(1), x[:, 4:6], regions).flatten(1)
+
+
+def data_relief(data: torch.Tensor, regions: torch.Tensor, n: int = 512, chunk: int = 64) -> torch.Tensor:
+    """(k * 2,) float32: the per-region relief correlations of the first n data samples (the relief term's target)."""
+    return _data_mean(lambda x: _albedo_relief(x, regions), data, n, chunk)
+
+
 def set_branch_noise(state: TrainState, strength: float) -> None:
     """Set the noise strength of every branched (per-modality) layer of G and G_ema. StyleGAN2 starts them at 0,
     and there the gradient vanishes in expectation (noise n adds s n; the loss is first order in s only
@@ -385,14 +427,14 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
     """What each per-region drift term measures: name -> f(fake (B, 7, R, R), regions) -> (B, m). One table
     for ``train_step`` and ``warm_running``, so that a warm start measures what the term pulls."""
     return {"coherence": _albedo_coherence, "band": lambda x, regions: _albedo_bands(x, regions, t.band_levels),
-            "spectrum": _albedo_spectra}
+            "spectrum": _albedo_spectra, "relief": _albedo_relief}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
                  running: torch.Tensor | None, measure: Callable[[torch.Tensor], torch.Tensor],
                  loss: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
                  gap: Callable[[torch.Tensor, torch.Tensor], float]) -> tuple[torch.Tensor, torch.Tensor | None, float | None]:
-    """One per-region drift term of ``train_step`` (coherence, band, spectrum): measure the fake batch
+    """One per-region drift term of ``train_step`` (coherence, band, spectrum, relief): measure the fake batch
     (``measure(regions)`` -> (B, m)), update the running mean, and return (loss, running, gap); with weight 0
     (zero loss, running unchanged, no gap)."""
     if weight <= 0:
@@ -457,9 +499,13 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     loss_spec, state.running_spectrum, spec_gap = _region_term(
         "spectrum", t.spectrum_weight, t.spectrum_beta, state.regions, state.spectrum_target, state.running_spectrum,
         lambda regions: measure["spectrum"](fake, regions), spectrum_loss, _spectrum_gap)
+    loss_relief, state.running_relief, relief_gap = _region_term(
+        "relief", t.relief_weight, t.relief_beta, state.regions, state.relief_target, state.running_relief,
+        lambda regions: measure["relief"](fake, regions), coherence_loss, lambda run, tgt: float((run - tgt).abs().mean()))
     state.opt_G.zero_grad(set_to_none=True)
     (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
-     + t.coherence_weight * loss_coh + t.band_weight * loss_band + t.spectrum_weight * loss_spec).backward()
+     + t.coherence_weight * loss_coh + t.band_weight * loss_band + t.spectrum_weight * loss_spec
+     + t.relief_weight * loss_relief).backward()
     state.opt_G.step()
     # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
     G.requires_grad_(False)
@@ -512,6 +558,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         out["band_gap"] = band_gap  # mean over regions, bands and channels of |running / target - 1|
     if spec_gap is not None:
         out["spectrum_gap"] = spec_gap  # mean over regions of the running spectrum's TV distance to the target
+    if relief_gap is not None:
+        out["relief_gap"] = relief_gap  # mean over regions and components of |running - target| correlation
     return out
 
 
@@ -546,7 +594,7 @@ def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.
     opt.load_state_dict(sd)
 
 
-_RUNNING = ("running_moments", "running_coherence", "running_band", "running_spectrum")
+_RUNNING = ("running_moments", "running_coherence", "running_band", "running_spectrum", "running_relief")
 _WARM_BATCHES = 16
 
 
@@ -746,6 +794,14 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         state.moments = data_moments(data, t.batch, seed=t.seed)
     if t.link_weight > 0 and state.link_target is None:
         state.link_target = data_link(data, state.link_mask)
+    if t.hairline_region and (state.regions is None or not bool((state.regions == HAIRLINE_LABEL).any())):
+        raise ValueError("train: hairline_region is on but state.regions has no hairline label "
+                         f"({HAIRLINE_LABEL}); build it with data.load_regions(resolution, hairline=True)")
+    if state.regions is not None and t.region_terms:
+        split = bool((state.regions[state.regions != 255] >= SIDE_OFFSET).any())
+        if split != t.side_regions:
+            raise ValueError(f"train: side_regions is {t.side_regions} but state.regions is {'' if split else 'not '}split "
+                             f"into sides (labels >= {SIDE_OFFSET}); build it with data.load_regions(resolution, sides={t.side_regions})")
     if t.coherence_weight > 0 and state.coherence_target is None:
         if state.regions is None:
             raise ValueError(f"train: coherence_weight {t.coherence_weight} needs state.regions (the UV region labels)")
@@ -758,9 +814,10 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if state.regions is None:
             raise ValueError(f"train: spectrum_weight {t.spectrum_weight} needs state.regions (the UV region labels)")
         state.spectrum_target = data_spectrum(data, state.regions)
-    if t.hairline_region and (state.regions is None or not bool((state.regions == HAIRLINE_LABEL).any())):
-        raise ValueError("train: hairline_region is on but state.regions has no hairline label "
-                         f"({HAIRLINE_LABEL}); build it with data.load_regions(resolution, hairline=True)")
+    if t.relief_weight > 0 and state.relief_target is None:
+        if state.regions is None:
+            raise ValueError(f"train: relief_weight {t.relief_weight} needs state.regions (the UV region labels)")
+        state.relief_target = data_relief(data, state.regions)
     if state.nimg > 0:  # a resume: a checkpoint from before 2026-11-27 holds no running means, and one whose
         # regions or bands changed holds running means of another shape
         started = warm_running(state)
