@@ -146,9 +146,9 @@ SIDE_OFFSET = 16
 
 def split_sides(regions: torch.Tensor) -> torch.Tensor:
     """(R, R) uint8 labels (255 unmapped), each below ``SIDE_OFFSET`` -> a copy with every mapped texel of
-    column >= R/2 (u >= 0.5, the layout's midline) relabelled label + ``SIDE_OFFSET``: each region split
-    into its two halves. The layout is mirror-symmetric (95 % of texels carry their mirror's label; the
-    small regions split within 2-3 % of even, the nose 44 / 56 %)."""
+    column >= R // 2 (u >= 0.5 for an even R, the layout's midline) relabelled label + ``SIDE_OFFSET``: each
+    region split into its two halves. The layout is mirror-symmetric (95 % of texels carry their mirror's
+    label; the small regions split within 2-3 % of even, the nose 44 / 56 %)."""
     if regions.ndim != 2 or regions.shape[0] != regions.shape[1] or regions.dtype != torch.uint8:
         raise ValueError(f"expected (R, R) uint8 region labels, got {tuple(regions.shape)} {regions.dtype}")
     mapped = regions != 255
