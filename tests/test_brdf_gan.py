@@ -313,6 +313,14 @@ def test_ada_augment():
 # --- training -------------------------------------------------------------------------------------------
 
 
+def _seeded_steps(state, data: torch.Tensor, steps: int = 30) -> list[dict[str, float]]:
+    """The drift-term tests' training: torch seed 0, then ``steps`` steps on batches of 8 drawn with seeds 0, 1, ...
+    from the first 16 data samples; returns the steps' losses."""
+    torch.manual_seed(0)
+    return [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
+            for i in range(steps)]
+
+
 def _tiny_data(n=16, r=16):
     """Structured maps: a warm albedo gradient, brighter specular in the middle, normals tilted in x."""
     g = torch.Generator().manual_seed(1)
@@ -375,9 +383,7 @@ def _moment_run(data: torch.Tensor, **moment_settings: float):
 
     state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, **moment_settings))
     state.moments = data_moments(data, 8)
-    torch.manual_seed(0)
-    losses = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
-              for i in range(30)]
+    losses = _seeded_steps(state, data)
     with torch.no_grad():
         fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
     return (fake.mean(dim=(0, 2, 3)) - data.mean(dim=(0, 2, 3))).abs().mean(), losses
@@ -498,9 +504,7 @@ def test_link_weight_raises_the_link_of_the_fakes():
     def run(weight):
         state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, link_weight=weight))
         state.link_target = 0.9
-        torch.manual_seed(0)
-        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
-               for i in range(30)]
+        out = _seeded_steps(state, data)
         with torch.no_grad():
             fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
         return float(detail_link(fake).mean()), out
@@ -585,9 +589,7 @@ def test_coherence_weight_moves_the_fakes_coherence(tmp_path):
     def run(weight, target=0.95):
         state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, coherence_weight=weight))
         state.regions, state.coherence_target = regions, torch.tensor([target, target])
-        torch.manual_seed(0)
-        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
-               for i in range(30)]
+        out = _seeded_steps(state, data)
         with torch.no_grad():
             fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
         return float(_albedo_coherence(fake, regions).mean()), out
@@ -694,9 +696,7 @@ def test_band_weight_moves_the_fakes_fine_detail(tmp_path):
         with torch.no_grad():
             base = _albedo_bands(state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat(), regions, 1).mean(0)
         state.band_target = base * scale
-        torch.manual_seed(0)
-        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
-               for i in range(30)]
+        out = _seeded_steps(state, data)
         with torch.no_grad():
             fake = state.G(torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))).cat()
         return float((_albedo_bands(fake, regions, 1).mean(0) / base).mean()), out
@@ -795,9 +795,7 @@ def test_relief_weight_moves_the_fakes_relief(tmp_path):
         with torch.no_grad():
             base = _albedo_relief(state.G(z).cat(), regions).mean(0)
         state.relief_target = base + shift
-        torch.manual_seed(0)
-        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))])
-               for i in range(30)]
+        out = _seeded_steps(state, data)
         with torch.no_grad():
             return float((_albedo_relief(state.G(z).cat(), regions).mean(0) - base).mean()), out
 
@@ -939,8 +937,7 @@ def test_spectrum_weight_moves_the_fakes_grain_spectrum_and_branch_noise_is_set(
     def run(weight):
         state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, spectrum_weight=weight))
         state.regions, state.spectrum_target = regions, target
-        torch.manual_seed(0)
-        out = [train_step(state, data[torch.randint(0, 16, (8,), generator=torch.Generator().manual_seed(i))]) for i in range(30)]
+        out = _seeded_steps(state, data)
         with torch.no_grad():
             s = _albedo_spectra(state.G(z).cat(), regions).view(64, 1, 16, 9)
         return float(spectrum_distance(s, target.view(1, 1, 16, 9))[0]), out

@@ -391,6 +391,11 @@ def spectrum_loss(spectra: torch.Tensor, running: torch.Tensor, target: torch.Te
     return coherence_loss(spectra / scale, running.to(spectra) / scale, target.to(spectra) / scale)
 
 
+def _abs_gap(running: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean of |running - target|: the coherence and relief terms' gap."""
+    return float((running - target).abs().mean())
+
+
 def _spectrum_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean over the regions with windows of the total variation distance between running and target spectra."""
     tv = 0.5 * (running - target).view(-1, _SPECTRUM_BINS).abs().sum(1)
@@ -492,7 +497,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     measure = _region_measures(t)
     loss_coh, state.running_coherence, coh_gap = _region_term(
         "coherence", t.coherence_weight, t.coherence_beta, state.regions, state.coherence_target, state.running_coherence,
-        lambda regions: measure["coherence"](fake, regions), coherence_loss, lambda run, tgt: float((run - tgt).abs().mean()))
+        lambda regions: measure["coherence"](fake, regions), coherence_loss, _abs_gap)
     loss_band, state.running_band, band_gap = _region_term(
         "band", t.band_weight, t.band_beta, state.regions, state.band_target, state.running_band,
         lambda regions: measure["band"](fake, regions), band_loss, lambda run, tgt: float((run / tgt - 1).abs().mean()))
@@ -501,7 +506,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         lambda regions: measure["spectrum"](fake, regions), spectrum_loss, _spectrum_gap)
     loss_relief, state.running_relief, relief_gap = _region_term(
         "relief", t.relief_weight, t.relief_beta, state.regions, state.relief_target, state.running_relief,
-        lambda regions: measure["relief"](fake, regions), coherence_loss, lambda run, tgt: float((run - tgt).abs().mean()))
+        lambda regions: measure["relief"](fake, regions), coherence_loss, _abs_gap)
     state.opt_G.zero_grad(set_to_none=True)
     (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
      + t.coherence_weight * loss_coh + t.band_weight * loss_band + t.spectrum_weight * loss_spec
