@@ -321,6 +321,34 @@ def _seeded_steps(state, data: torch.Tensor, steps: int = 30) -> list[dict[str, 
             for i in range(steps)]
 
 
+def _pulled(name: str, weight: float, measure, target_of, regions: torch.Tensor, data: torch.Tensor, z: torch.Tensor):
+    """``_seeded_steps`` of a fresh tiny G with the per-region term ``name`` at ``weight`` and its target
+    ``target_of(base)``, base the fresh G's ``measure(fakes, regions)`` averaged over z. Returns (base, the same
+    measure after, the steps' losses)."""
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, **{f"{name}_weight": weight}))
+    state.regions = regions
+    with torch.no_grad():
+        base = measure(state.G(z).cat(), regions).mean(0)
+    setattr(state, f"{name}_target", target_of(base))
+    out = _seeded_steps(state, data)
+    with torch.no_grad():
+        return base, measure(state.G(z).cat(), regions).mean(0), out
+
+
+def _assert_region_term_refusals(name: str, data: torch.Tensor, run_dir) -> None:
+    """A per-region drift term's refusals: a step without its regions and target, a run without regions, a
+    negative weight and a decay of 1."""
+    state = new_state(TINY, TrainSettings(batch=8, kimg=1, **{f"{name}_weight": 1.0}))
+    with pytest.raises(ValueError, match=f"needs state.regions and state.{name}_target"):
+        train_step(state, data[:8])
+    with pytest.raises(ValueError, match=f"{name}_weight 1.0 needs state.regions"):
+        train(state, data, run_dir, progress=False)
+    with pytest.raises(ValueError, match=f"{name}_weight must be finite and >= 0, got -1.0"):
+        TrainSettings(**{f"{name}_weight": -1.0})
+    with pytest.raises(ValueError, match=f"{name}_beta must be in"):
+        TrainSettings(**{f"{name}_beta": 1.0})
+
+
 def _tiny_data(n=16, r=16):
     """Structured maps: a warm albedo gradient, brighter specular in the middle, normals tilted in x."""
     g = torch.Generator().manual_seed(1)
@@ -599,17 +627,7 @@ def test_coherence_weight_moves_the_fakes_coherence(tmp_path):
     down, _ = run(50.0, 0.1)
     assert on > off + 0.04 and down < off - 0.2, (on, off, down)  # 0.74 and 0.24 against 0.66 measured
     assert "coherence_gap" not in l_off[0] and 0 <= l_on[-1]["coherence_gap"] <= 1
-    state = new_state(TINY, TrainSettings(batch=8, kimg=1, coherence_weight=1.0))
-    with pytest.raises(ValueError, match="needs state.regions and state.coherence_target"):
-        train_step(state, data[:8])
-    with pytest.raises(ValueError, match="needs state.regions"):
-        from fitme_cli.reflectance.gan.train import train as train_loop
-
-        train_loop(state, data, tmp_path, progress=False)
-    with pytest.raises(ValueError, match="coherence_weight must be finite and >= 0, got -1.0"):
-        TrainSettings(coherence_weight=-1.0)
-    with pytest.raises(ValueError, match="coherence_beta must be in"):
-        TrainSettings(coherence_beta=1.0)
+    _assert_region_term_refusals("coherence", data, tmp_path)
 
 
 def _band_energy_ref(x: torch.Tensor, regions: torch.Tensor, levels: int) -> torch.Tensor:
@@ -706,17 +724,7 @@ def test_band_weight_moves_the_fakes_fine_detail(tmp_path):
     down, _ = run(5.0, 0.5)
     assert up > off * 1.2 and down < off / 1.2, (up, off, down)  # 40.8 and 0.12 against 2.94 measured
     assert "band_gap" not in l_off[0] and l_up[0]["band_gap"] == pytest.approx(5 / 6, abs=0.05)
-    state = new_state(TINY, TrainSettings(batch=8, kimg=1, band_weight=1.0))
-    with pytest.raises(ValueError, match="needs state.regions and state.band_target"):
-        train_step(state, data[:8])
-    with pytest.raises(ValueError, match="band_weight 1.0 needs state.regions"):
-        from fitme_cli.reflectance.gan.train import train as train_loop
-
-        train_loop(state, data, tmp_path, progress=False)
-    with pytest.raises(ValueError, match="band_weight must be finite and >= 0, got -1.0"):
-        TrainSettings(band_weight=-1.0)
-    with pytest.raises(ValueError, match="band_beta must be in"):
-        TrainSettings(band_beta=1.0)
+    _assert_region_term_refusals("band", data, tmp_path)
     with pytest.raises(ValueError, match="band_levels must be 1, 2 or 3, got 0"):
         TrainSettings(band_levels=0)
 
@@ -790,30 +798,81 @@ def test_relief_weight_moves_the_fakes_relief(tmp_path):
     z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
 
     def run(weight, shift):
-        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, relief_weight=weight))
-        state.regions = regions
-        with torch.no_grad():
-            base = _albedo_relief(state.G(z).cat(), regions).mean(0)
-        state.relief_target = base + shift
-        out = _seeded_steps(state, data)
-        with torch.no_grad():
-            return float((_albedo_relief(state.G(z).cat(), regions).mean(0) - base).mean()), out
+        base, now, out = _pulled("relief", weight, _albedo_relief, lambda b: b + shift, regions, data, z)
+        return float((now - base).mean()), out
 
     off, l_off = run(0.0, 0.0)
     up, l_up = run(20.0, 0.5)
     down, _ = run(20.0, -0.5)
     assert up > off + 0.05 and down < off - 0.05, (up, off, down)
     assert "relief_gap" not in l_off[0] and l_up[0]["relief_gap"] == pytest.approx(0.5, abs=0.05)
-    state = new_state(TINY, TrainSettings(batch=8, kimg=1, relief_weight=1.0))
-    with pytest.raises(ValueError, match="needs state.regions and state.relief_target"):
-        train_step(state, data[:8])
-    with pytest.raises(ValueError, match="relief_weight 1.0 needs state.regions"):
-        train(state, data, tmp_path, progress=False)
-    with pytest.raises(ValueError, match="relief_weight must be finite and >= 0, got -1.0"):
-        TrainSettings(relief_weight=-1.0)
-    with pytest.raises(ValueError, match="relief_beta must be in"):
-        TrainSettings(relief_beta=1.0)
+    _assert_region_term_refusals("relief", data, tmp_path)
     assert TrainSettings(relief_weight=1.0, side_regions=True).region_terms  # the relief term counts as one
+
+
+def test_region_moments_matches_reference_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import region_moments
+
+    r = 16
+    regions = _two_regions(r)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(3, 4, r, r, generator=g)
+    m = region_moments(x, regions)
+    assert m.shape == (3, 2, 2, 4) and m.dtype == torch.float32
+    for j, lab in enumerate((2, 7)):  # the slow, obvious way: each region's texels, numpy's mean and population std
+        v = x[:, :, regions == lab].double().numpy()
+        torch.testing.assert_close(m[:, j, 0].double(), torch.from_numpy(v.mean(2)), atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(m[:, j, 1].double(), torch.from_numpy(v.std(2)), atol=1e-5, rtol=1e-4)
+    # known values: a region half 0.2 and half 0.6 has mean 0.4 and std 0.2; a constant one std 0
+    y = torch.full((1, 1, r, r), 0.3)
+    y[0, 0, :, 2:4] = 0.2
+    y[0, 0, :, 4 : r // 2 - 1] = 0.6
+    lab2 = regions == 2
+    y[0, 0, lab2 & (torch.arange(r) < 5)] = 0.2
+    y[0, 0, lab2 & (torch.arange(r) >= 5)] = 0.6  # columns 2-4 vs 5-6: 3 / 5 and 2 / 5 of the region
+    got = region_moments(y, regions)[0, :, :, 0]
+    torch.testing.assert_close(got, torch.tensor([[0.36, 0.196], [0.3, 0.0]]), atol=1e-3, rtol=0)
+    x64 = torch.rand(2, 3, r, r, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a: region_moments(a, regions), (x64,))
+    flat = torch.full((1, 3, r, r), 0.5, requires_grad=True)
+    region_moments(flat, regions)[:, :, 1].sum().backward()
+    assert torch.isfinite(flat.grad).all()  # a flat region's std: 0, no NaN gradient
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps .* got \(3, 4, 16, 16\) torch.int64"):
+        region_moments(x.long(), regions)
+    with pytest.raises(ValueError, match="at least one mapped region"):
+        region_moments(x, torch.full((r, r), 255, dtype=torch.uint8))
+
+
+def test_colour_weight_moves_the_fakes_region_colour(tmp_path):
+    """Same seed, same steps: with the colour term G's per-region albedo means move toward targets above and
+    below where they start; it needs its regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _albedo_colour, data_colour
+
+    data = _tiny_data()
+    regions = _two_regions()
+    torch.testing.assert_close(data_colour(data, regions, chunk=4), _albedo_colour(data.float(), regions).mean(0))
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def run(weight, scale):  # the means' targets moved by scale, the stds' where they are
+        base, now, out = _pulled("colour", weight, _albedo_colour,
+                                 lambda b: (b.view(2, 2, 3) * torch.tensor([scale, 1.0]).view(1, 2, 1)).flatten(), regions, data, z)
+        return float((now.view(2, 2, 3)[:, 0] / base.view(2, 2, 3)[:, 0]).mean()), out
+
+    off, l_off = run(0.0, 1.0)
+    up, l_up = run(2.0, 1.5)
+    down, _ = run(2.0, 0.6)
+    assert up > off + 0.1 and down < off - 0.1, (up, off, down)
+    assert "colour_gap" not in l_off[0] and 0.1 < l_up[0]["colour_gap"] < 0.3  # the means' 0.5, the stds' 0, averaged
+    _assert_region_term_refusals("colour", data, tmp_path)
+    assert TrainSettings(colour_weight=1.0, eye_region=True).region_terms  # the colour term counts as one
+    # relative like the band term's above its floor; a target of 0 (a one-texel region's spread) stays finite
+    from fitme_cli.reflectance.gan.train import band_loss, colour_loss
+
+    c = torch.rand(4, 6, requires_grad=True)
+    running, target = torch.rand(6), 0.1 + torch.rand(6)
+    torch.testing.assert_close(colour_loss(c, running, target), band_loss(c, running, target))
+    colour_loss(c, running, torch.zeros(6)).backward()
+    assert torch.isfinite(c.grad).all() and c.grad.abs().sum() > 0
 
 
 def _spectrum_ref(img: torch.Tensor, regions: torch.Tensor, patch: int) -> torch.Tensor:
@@ -946,17 +1005,8 @@ def test_spectrum_weight_moves_the_fakes_grain_spectrum_and_branch_noise_is_set(
     on, l_on = run(0.05)
     assert on < off / 2, (on, off)  # 0.072 against 0.227 measured
     assert "spectrum_gap" not in l_off[0] and 0 < l_on[-1]["spectrum_gap"] < l_on[0]["spectrum_gap"]
+    _assert_region_term_refusals("spectrum", data, tmp_path)
     state = new_state(TINY, TrainSettings(batch=8, kimg=1, spectrum_weight=1.0))
-    with pytest.raises(ValueError, match="needs state.regions and state.spectrum_target"):
-        train_step(state, data[:8])
-    with pytest.raises(ValueError, match="spectrum_weight 1.0 needs state.regions"):
-        from fitme_cli.reflectance.gan.train import train as train_loop
-
-        train_loop(state, data, tmp_path, progress=False)
-    with pytest.raises(ValueError, match="spectrum_weight must be finite and >= 0, got -1.0"):
-        TrainSettings(spectrum_weight=-1.0)
-    with pytest.raises(ValueError, match="spectrum_beta must be in"):
-        TrainSettings(spectrum_beta=1.0)
     before = {n: p.clone() for n, p in state.G.named_parameters()}
     set_branch_noise(state, 0.02)
     for G in (state.G, state.G_ema):
@@ -1154,15 +1204,92 @@ def test_side_regions_need_a_per_region_term_and_split_labels():
         train(state, _tiny_data(), None, progress=False)
 
 
-def test_hairline_region_needs_a_per_region_term_and_the_label():
-    with pytest.raises(ValueError, match="hairline_region must be a bool, got 1"):
-        TrainSettings(hairline_region=1)
-    with pytest.raises(ValueError, match="hairline_region needs a per-region term"):
-        TrainSettings(hairline_region=True)
-    state = new_state(TINY, TrainSettings(batch=4, kimg=0.004, band_weight=0.5, hairline_region=True))
-    state.regions = torch.full((16, 16), 2, dtype=torch.uint8)  # built without the hairline
-    with pytest.raises(ValueError, match=r"no hairline label \(8\); build it with data.load_regions"):
+def test_eye_openings_are_the_data_eyeballs_and_a_region_of_their_own():
+    """--eye-region: the per-region terms measure the data's eye openings (a striped or pinkish-white blob where
+    the data paints a flat grey eyeball told G's maps from the data's, docs/brdf_gan.md) as a label of their own,
+    most of it the shape model's unmapped eye holes."""
+    import cv2
+
+    from fitme_cli.perception.registry import ensure_models
+    from fitme_cli.reflectance.gan.data import EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, eye_openings, load_regions
+    from fitme_cli.reflectance.skin_data import SkinDataSettings, generate_sample, skin_layout
+    from fitme_cli.shape.regions import REGIONS
+
+    assert EYE_LABEL == HAIRLINE_LABEL + 1 < SIDE_OFFSET
+    base, eyes = load_regions(256), eye_openings(256)
+    assert eyes.shape == (256, 256) and eyes.dtype == torch.bool
+    assert cv2.connectedComponents(eyes.numpy().astype(np.uint8), connectivity=8)[0] == 3  # two eyes
+    assert 100 < int(eyes.sum()) < 150 and set(torch.unique(base[eyes]).tolist()) == {REGIONS.index("eyes"), 255}
+    assert float((base[eyes] == 255).float().mean()) > 0.6  # mostly the unmapped eye holes
+    carved = load_regions(256, hairline=True, eyes=True)
+    assert torch.equal(carved == EYE_LABEL, eyes) and torch.equal(carved[~eyes], load_regions(256, hairline=True)[~eyes])
+    sided = load_regions(256, hairline=True, sides=True, eyes=True)
+    left, right = int((sided == EYE_LABEL).sum()), int((sided == EYE_LABEL + SIDE_OFFSET).sum())
+    assert left + right == int(eyes.sum()) and 0.9 < right / left < 1.1
+    # the data's eyeballs: greyer and flatter than the lids around them, whatever the skin
+    layout = skin_layout(ensure_models(["shape_model"]), 256)
+    lids = (base == REGIONS.index("eyes")) & ~eyes
+    spread = []
+    for index in range(8):
+        a = torch.from_numpy(generate_sample(layout, 0, index, SkinDataSettings(size=256)).albedo)
+        inside, lid = a[eyes], a[lids]
+        assert inside[:, 0].mean() / inside[:, 2].mean() < 0.85 * lid[:, 0].mean() / lid[:, 2].mean()
+        spread.append([float((v.std(0) / v.mean(0)).mean()) for v in (inside, lid)])
+    # a mole or a stray hair can cross one eyeball (0.4 of the skin shows through): the median sample's
+    median = np.median(spread, 0)
+    assert median[0] < 0.6 * median[1], spread
+    assert bool((load_regions(16, eyes=True) == EYE_LABEL).any())
+    with pytest.raises(ValueError, match="expected a resolution >= 1, got 0"):
+        eye_openings(0)
+
+
+def test_brow_edges_ring_the_data_brows_and_are_a_region_of_their_own():
+    """--brow-edge-region: a ring along the data's brow edges (soft brows told G's maps from the data's,
+    docs/brdf_gan.md), carved from the brows region."""
+    import cv2
+
+    from fitme_cli.perception.registry import ensure_models
+    from fitme_cli.reflectance.gan.data import BROW_EDGE_LABEL, EYE_LABEL, SIDE_OFFSET, brow_edges, load_regions
+    from fitme_cli.reflectance.skin_data import skin_layout
+    from fitme_cli.shape.regions import REGIONS
+
+    assert BROW_EDGE_LABEL == EYE_LABEL + 1 < SIDE_OFFSET
+    ring = brow_edges(256)
+    assert ring.dtype == torch.bool and cv2.connectedComponents(ring.numpy().astype(np.uint8), connectivity=8)[0] == 3
+    base = load_regions(256)
+    assert float((base[ring] == REGIONS.index("brows")).float().mean()) > 0.95
+    # the brows' edge runs along it: every texel at the edge of where the data's brow hair is lies in the ring, and
+    # the ring reaches one texel either side of it
+    inside = (skin_layout(ensure_models(["shape_model"]), 256).soft["brows"] > 0.5).astype(np.uint8)
+    edge = torch.from_numpy((inside > 0) & ~(cv2.erode(inside, np.ones((3, 3), np.uint8)) > 0))
+    assert bool(ring[edge].all()) and 250 < int(ring.sum()) < 3.5 * int(edge.sum())
+    assert 0.3 < float(torch.from_numpy(inside > 0)[ring].float().mean()) < 0.7  # as much inside as out
+    carved = load_regions(256, eyes=True, brows=True)
+    assert torch.equal(carved == BROW_EDGE_LABEL, ring) and torch.equal(carved[~ring], load_regions(256, eyes=True)[~ring])
+    sided = load_regions(256, sides=True, brows=True)
+    left, right = int((sided == BROW_EDGE_LABEL).sum()), int((sided == BROW_EDGE_LABEL + SIDE_OFFSET).sum())
+    assert 0.9 < right / left < 1.1
+    assert bool((load_regions(16, brows=True) == BROW_EDGE_LABEL).any())
+
+
+@pytest.mark.parametrize("name, label, arg", [("hairline_region", 8, "hairline"), ("eye_region", 9, "eyes"),
+                                             ("brow_edge_region", 10, "brows")])
+def test_carved_regions_need_a_per_region_term_and_their_label(name, label, arg):
+    from fitme_cli.reflectance.gan.data import SIDE_OFFSET
+
+    with pytest.raises(ValueError, match=f"{name} must be a bool, got 1"):
+        TrainSettings(**{name: 1})
+    with pytest.raises(ValueError, match=f"{name} needs a per-region term"):
+        TrainSettings(**{name: True})
+    state = new_state(TINY, TrainSettings(batch=4, kimg=0.004, colour_weight=0.5, **{name: True}))
+    state.regions = _two_regions()  # built without the label
+    with pytest.raises(ValueError, match=rf"no {arg} label \({label}\); build it with data.load_regions\(resolution, {arg}=True\)"):
         train(state, _tiny_data(), None, progress=False)
+    state = new_state(TINY, TrainSettings(batch=4, kimg=0.004, colour_weight=0.5, side_regions=True, **{name: True}))
+    state.regions = torch.full((16, 16), 255, dtype=torch.uint8)
+    state.regions[4:12, 2:8], state.regions[4:12, 8:14] = label, label + SIDE_OFFSET  # split: found on both sides
+    train(state, _tiny_data(), None, progress=False, max_steps=0)
+    assert state.colour_target.shape == (2 * 2 * 3,)
 
 
 def test_blind_rounds_hide_eight_of_each_and_score_counts_hits(tmp_path):
@@ -1331,11 +1458,13 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--hairline-region", "--side-regions", "--branch-noise", "0.05", "--threads", "1"])
+                                  "--colour-weight", "0.5", "--hairline-region", "--side-regions", "--eye-region", "--brow-edge-region",
+                                  "--branch-noise", "0.05", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     assert state.train.hairline_region is True and state.train.side_regions is True and state.train.relief_weight == 2.0
+    assert state.train.eye_region is True and state.train.brow_edge_region is True and state.train.colour_weight == 0.5
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
     # the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
@@ -1349,6 +1478,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.band_weight == 5.0 and state.train.band_levels == 3
     assert lines[-1]["band_gap"] >= 0 and "band_gap" not in lines[0]
     assert 0 <= lines[-1]["relief_gap"] <= 2 and "relief_gap" not in lines[0]
+    assert lines[-1]["colour_gap"] >= 0 and "colour_gap" not in lines[0]
     # at 16^2 no region has a whole 16^2 window: the term runs, and its gap counts no region
     assert state.train.spectrum_weight == 0.01 and lines[-1]["spectrum_gap"] == 0 and "spectrum_gap" not in lines[0]
     strengths = [float(p) for n, p in state.G_ema.named_parameters() if "branches" in n and n.endswith("noise_strength")]
@@ -1461,7 +1591,15 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert set(m) == {"per_channel", "std_ratio_by_scale", "frechet_reflectance_features", "region_albedo_q10_q50_q90",
                       "albedo_band_ratio_by_region", "albedo_spectrum_tv_by_region", "modality_consistency",
                       "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step", "albedo_band_ratio_hairline",
-                      "albedo_band_ratio_by_side", "albedo_normal_relief_by_region"}
+                      "albedo_band_ratio_by_side", "albedo_normal_relief_by_region", "albedo_moment_ratio_by_region",
+                      "albedo_band_ratio_features"}
+    moments = m["albedo_moment_ratio_by_region"]  # the regions, the eye openings and the brow edges
+    assert set(moments) == set(m["albedo_band_ratio_by_region"]) | {"eye_openings", "brow_edges"}
+    features = m["albedo_band_ratio_features"]
+    assert list(features) == ["eye_openings", "brow_edges"]
+    assert all(len(v) == 3 and all(np.isfinite(b) and b > 0 for b in v) for v in features.values())
+    assert all(list(v) == ["mean", "std"] and all(len(c) == 3 and all(np.isfinite(b) and b >= 0 for b in c) for c in v.values())
+               for v in moments.values())
     relief = m["albedo_normal_relief_by_region"]
     assert set(relief) == set(m["albedo_band_ratio_by_region"])
     assert all(len(v) == 2 and all(-1 <= c <= 1 for c in v) for r in relief.values() for v in r.values())

@@ -43,8 +43,8 @@ def _stop_requests():
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
-                "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "hairline_region",
-                "side_regions")
+                "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
+                "hairline_region", "side_regions", "eye_region", "brow_edge_region")
 
 
 @click.command("train")
@@ -95,12 +95,21 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--relief-weight", type=click.FloatRange(min=0),
               help="Pull the running per-region correlation of G's albedo grain with its normals' slope to the data's (~0), "
                    "against an albedo embossed like a relief lit from one side (not in the paper; may change on --resume). [0]")
+@click.option("--colour-weight", type=click.FloatRange(min=0),
+              help="Pull the running per-region mean and spread of each channel of G's albedo to the data's, against "
+                   "regions of the wrong colour (not in the paper; may change on --resume). [0]")
 @click.option("--hairline-region/--no-hairline-region", default=None,
               help="The per-region terms also measure the data's hairline as a region of its own, against a soft "
                    "hairline (not in the paper; may change on --resume). [off]")
 @click.option("--side-regions/--no-side-regions", default=None,
               help="The per-region terms measure each region's left and right halves apart, against grain pulled onto one "
                    "side (not in the paper; may change on --resume). [off]")
+@click.option("--eye-region/--no-eye-region", default=None,
+              help="The per-region terms also measure the data's eye openings as a region of their own, against blobs "
+                   "where the data paints a flat grey eyeball (not in the paper; may change on --resume). [off]")
+@click.option("--brow-edge-region/--no-brow-edge-region", default=None,
+              help="The per-region terms also measure a ring along the data's brow edges as a region of its own, against "
+                   "soft brows (not in the paper; may change on --resume). [off]")
 @click.option("--branch-noise", type=click.FloatRange(-1, 1),
               help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
                    "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")
@@ -173,7 +182,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
                       "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
-                      "spectrum_weight", "relief_weight", "hairline_region", "side_regions")
+                      "spectrum_weight", "relief_weight", "colour_weight", "hairline_region", "side_regions",
+                      "eye_region", "brow_edge_region")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:
@@ -233,7 +243,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     if state.train.region_terms:
         # where the per-region terms measure
         state.regions = load_regions(gan_settings.resolution, hairline=state.train.hairline_region,
-                                     sides=state.train.side_regions)
+                                     sides=state.train.side_regions, eyes=state.train.eye_region,
+                                     brows=state.train.brow_edge_region)
     if branch_noise is not None:
         set_branch_noise(state, branch_noise)
         click.echo(f"branched layers' noise strength set to {branch_noise}", err=True)

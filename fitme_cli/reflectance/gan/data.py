@@ -8,6 +8,7 @@ as raw components in [-1, 1].
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -18,7 +19,7 @@ from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
 __all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "split_sides",
-           "HAIRLINE_LABEL", "SIDE_OFFSET"]
+           "eye_openings", "brow_edges", "HAIRLINE_LABEL", "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
 
@@ -140,6 +141,47 @@ def hairline_band(resolution: int) -> torch.Tensor:
     return hairline_zones(resolution) == 1
 
 
+# the per-region terms' labels for the eye openings (``load_regions(eyes=True)``) and the brows' edges
+# (``load_regions(brows=True)``), after ``HAIRLINE_LABEL``
+EYE_LABEL = 9
+BROW_EDGE_LABEL = 10
+
+
+def _layout_mask(resolution: int, mask: Callable[[np.ndarray], np.ndarray], key: str) -> torch.Tensor:
+    """(R, R) bool: ``mask`` of the training data's layout (``fitme dataset``'s ``skin_data.SkinLayout.soft[key]``).
+    Below 64^2, the texels at least half covered by the 64^2 mask, or where none is, the most covered (at 16^2 an
+    eye is a fraction of a texel, and a resize would lose it)."""
+    from ...perception.registry import ensure_models
+    from ..skin_data import skin_layout
+
+    if resolution < 1:
+        raise ValueError(f"expected a resolution >= 1, got {resolution}")
+    size = max(resolution, 64)
+    m = mask(skin_layout(ensure_models(["shape_model"]), size).soft[key]).astype(np.float32)
+    if size != resolution:
+        cover = cv2.resize(m, (resolution,) * 2, interpolation=cv2.INTER_AREA)
+        m = cover >= min(0.5, float(cover.max()) - 1e-6)
+    return torch.from_numpy(m.astype(bool))
+
+
+def eye_openings(resolution: int) -> torch.Tensor:
+    """(R, R) bool: the training data's eye openings (the layout's ``eye_inside`` > 0.5), where the data paints a
+    flat dim eyeball (0.4 of the skin plus a fixed grey). Most of it lies in the shape model's unmapped eye holes
+    (90 of 121 texels at 256^2), which no region label covers."""
+    return _layout_mask(resolution, lambda m: m > 0.5, "eye_inside")
+
+
+def brow_edges(resolution: int) -> torch.Tensor:
+    """(R, R) bool: a 3-texel ring along the edge of the training data's brows (the layout's ``brows`` > 0.5,
+    where every sample's brow hair is; its density varies). 312 texels at 256^2, 305 of them from the brows region,
+    which reaches well beyond the hair."""
+    def ring(m: np.ndarray) -> np.ndarray:
+        inside, k = (m > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)
+        return (cv2.dilate(inside, k) > 0) & ~(cv2.erode(inside, k) > 0)
+
+    return _layout_mask(resolution, ring, "brows")
+
+
 # added by ``split_sides`` to the label of each texel right of the UV midline; above every base label
 SIDE_OFFSET = 16
 
@@ -161,10 +203,14 @@ def split_sides(regions: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def load_regions(resolution: int, hairline: bool = False, sides: bool = False) -> torch.Tensor:
+def load_regions(resolution: int, hairline: bool = False, sides: bool = False, eyes: bool = False,
+                 brows: bool = False) -> torch.Tensor:
     """(R, R) uint8: the shape model's UV region labels (255 unmapped) at the maps' resolution (nearest).
     ``hairline``: the texels of ``hairline_band`` relabelled ``HAIRLINE_LABEL`` (the BRDF-GAN's
     ``TrainSettings.hairline_region``), taken from the scalp, forehead, skin or unmapped border around it.
+    ``eyes``: the texels of ``eye_openings`` labelled ``EYE_LABEL`` (``TrainSettings.eye_region``), taken from
+    the eyes region and the unmapped eye holes. ``brows``: the texels of ``brow_edges`` labelled ``BROW_EDGE_LABEL``
+    (``TrainSettings.brow_edge_region``), taken from the brows region.
     ``sides``: then each region split at the midline (``split_sides``; ``TrainSettings.side_regions``)."""
     from safetensors.numpy import load_file
 
@@ -174,4 +220,8 @@ def load_regions(resolution: int, hairline: bool = False, sides: bool = False) -
     regions = torch.from_numpy(cv2.resize(region_uv, (resolution,) * 2, interpolation=cv2.INTER_NEAREST))
     if hairline:
         regions[hairline_band(resolution)] = HAIRLINE_LABEL
+    if eyes:
+        regions[eye_openings(resolution)] = EYE_LABEL
+    if brows:
+        regions[brow_edges(resolution)] = BROW_EDGE_LABEL
     return split_sides(regions) if sides else regions

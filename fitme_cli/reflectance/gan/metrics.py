@@ -37,7 +37,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "feature_parts", "region_albedo", "frechet_distance", "detail_region", "detail_link",
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
-           "spectrum_distance", "spectrum_excess_peak", "region_relief"]
+           "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -142,6 +142,26 @@ def region_band_energy(x: torch.Tensor, regions: torch.Tensor, levels: int = 3) 
     # ``orientation_coherence``
     flat = energy <= 0
     return (torch.where(flat, torch.ones_like(energy), energy).sqrt() * ~flat).permute(0, 3, 1, 2)
+
+
+def region_moments(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, 2, C) same dtype:
+    per sample and region of ``region_labels``, each channel's mean and standard deviation (population) over the
+    region's texels. Differentiable (the BRDF-GAN's colour term)."""
+    if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    w = _region_weights(regions, x).T  # (R*R, k)
+    flat = x.flatten(2)
+    mean = flat @ w  # (N, C, k)
+    # centred on each texel's own region mean (the regions are disjoint): E[x^2] - E[x]^2 in float32 lost half
+    # the digits of a nearly flat region's spread
+    var = (flat - mean @ (w.T > 0).to(x)).square() @ w
+    # the root's gradient is infinite at 0 (a flat region): there it is taken of a stand-in 1, as in
+    # ``region_band_energy``
+    zero = var <= 0
+    std = torch.where(zero, torch.ones_like(var), var).sqrt() * ~zero
+    return torch.stack([mean, std], 1).permute(0, 3, 1, 2)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

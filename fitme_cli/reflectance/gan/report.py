@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data import SIDE_OFFSET, hairline_zones, load_dataset, load_regions, split_sides
+from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, brow_edges, eye_openings, hairline_zones,
+                   load_dataset, load_regions, split_sides)
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
                       modality_consistency, reflectance_features, region_albedo, region_albedo_bands, region_band_energy,
-                      region_labels, region_relief, region_spectrum,
+                      region_labels, region_moments, region_relief, region_spectrum,
                       spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
@@ -65,17 +66,19 @@ def _encoded(stats_mean, stats_std):
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
-             mapped: torch.Tensor, skin: torch.Tensor, zones: torch.Tensor, sides: torch.Tensor
+             mapped: torch.Tensor, skin: torch.Tensor, zones: torch.Tensor, sides: torch.Tensor, features: torch.Tensor
              ) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts, np.ndarray, torch.Tensor, torch.Tensor,
-                        torch.Tensor, torch.Tensor]:
+                        torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """One side of the comparison (generated when src is None): channel stats, reflectance features,
     modality consistency, the std by scale and the strand coherence (these three on the first 200 samples),
     the linear albedo luminance's finest-band spectra (N, k, 16, 9), and the linear albedo's band RMS
     (mean of r, g, b) in the hairline's three zones (``data.hairline_zones``), (3, 3 bands) averaged over samples,
     its finest band's RMS in each half of each region (``sides``: ``data.split_sides``), (k,) likewise, and
     the per-region correlation of the albedo luminance's finest band with the normals' x and y
-    (``metrics.region_relief``), (k, 2) likewise."""
-    st, fs, cm, sp, hz, sd, rl = _Stats(mapped), [], [], [], [], [], []
+    (``metrics.region_relief``), (k, 2) likewise, and in each region with the eye openings and brow edges carved in
+    (``features``: ``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``), the linear albedo's mean and std per channel
+    (``metrics.region_moments``), (k', 2, 3) likewise, and its band RMS (mean of r, g, b), (k', 3 bands) likewise."""
+    st, fs, cm, sp, hz, sd, rl, mo, fb = _Stats(mapped), [], [], [], [], [], [], [], []
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
         fs.append(reflectance_features(x, regions))
@@ -83,12 +86,14 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         hz.append(region_band_energy(x[:, :3], zones).mean(3))
         sd.append(region_band_energy(x[:, :3], sides, 1)[:, :, 0].mean(2))
         rl.append(region_relief(x[:, :3].mean(1), x[:, 4:6], regions))
+        mo.append(region_moments(x[:, :3], features))
+        fb.append(region_band_energy(x[:, :3], features).mean(3))
         if sum(len(c) for c in cm) < 200:
             cm.append(x)
     first = torch.cat(cm)[:200]
     return (st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
             strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0), torch.cat(sd).mean(0),
-            torch.cat(rl).mean(0))
+            torch.cat(rl).mean(0), torch.cat(mo).mean(0), torch.cat(fb).mean(0))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -105,10 +110,13 @@ def evaluate_psis(G: Generator, data: torch.Tensor, regions: torch.Tensor, trunc
     skin = detail_region(regions)
     zones = hairline_zones(regions.shape[0])
     sides = split_sides(regions)
+    features = regions.clone()
+    features[eye_openings(regions.shape[0])] = EYE_LABEL
+    features[brow_edges(regions.shape[0])] = BROW_EDGE_LABEL
     n_real = min(n_real, len(data))
-    real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin, zones, sides)
-    return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin, zones, sides), real, regions, seed, psi)
-            for psi in truncation_psis]
+    real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin, zones, sides, features)
+    return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin, zones, sides, features), real, regions,
+                     features, seed, psi) for psi in truncation_psis]
 
 
 def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
@@ -120,9 +128,11 @@ def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
         yield w[:1] + t * (w[1:] - w[:1])
 
 
-def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncation_psi: float) -> dict:
-    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh, gan_spec, gan_hair, gan_side, gan_relief), \
-        (data_stats, data_feats, data_cons, data_parts, data_coh, data_spec, data_hair, data_side, data_relief) = gan, real
+def _compare(G: Generator, gan, real, regions: torch.Tensor, features: torch.Tensor, seed: int, truncation_psi: float) -> dict:
+    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh, gan_spec, gan_hair, gan_side, gan_relief, gan_mom, gan_fb), \
+        (data_stats, data_feats, data_cons, data_parts, data_coh, data_spec, data_hair, data_side, data_relief, data_mom,
+         data_fb) = gan, real
+    flabels = region_labels(features)
     half = len(data_feats) // 2
     fm, fsd = _encoded(gan_stats.mean, gan_stats.std)
     rm, rsd = _encoded(data_stats.mean, data_stats.std)
@@ -184,6 +194,16 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, seed: int, truncati
         "albedo_normal_relief_by_region": {_region_name(lab): {"data": [round(float(v), 3) for v in data_relief[j]],
                                                                "gan": [round(float(v), 3) for v in gan_relief[j]]}
                                            for j, lab in enumerate(region_labels(regions))},
+        # a region of the wrong colour or spread (the eye openings, docs/brdf_gan.md): per region, eye openings and
+        # brow edges included, G's mean over the data's of each albedo channel's [r, g, b] mean and within-region std
+        "albedo_moment_ratio_by_region": {_region_name(lab): {part: [round(float(g / max(float(d), 1e-12)), 3)
+                                                                     for g, d in zip(gan_mom[j, i], data_mom[j, i])]
+                                                              for i, part in enumerate(("mean", "std"))}
+                                          for j, lab in enumerate(flabels)},
+        # soft brows and blobby eyes (docs/brdf_gan.md): per band (finest first), G's albedo RMS over the data's
+        "albedo_band_ratio_features": {_region_name(lab): [round(float(g / max(float(d), 1e-12)), 3)
+                                                           for g, d in zip(gan_fb[flabels.index(lab)], data_fb[flabels.index(lab)])]
+                                       for lab in (EYE_LABEL, BROW_EDGE_LABEL) if lab in flabels},
         "modality_consistency": {"gan_matched": round(gan_cons[0], 3), "gan_mismatched": round(gan_cons[1], 3),
                                  "data_matched": round(data_cons[0], 3), "data_mismatched": round(data_cons[1], 3)},
         # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region
@@ -207,7 +227,8 @@ def _by_side(ratio: torch.Tensor, regions: torch.Tensor) -> dict[str, list[float
 def _region_name(label: int) -> str:
     from ...shape.regions import REGIONS
 
-    return REGIONS[label] if label < len(REGIONS) else f"region{label}"
+    extra = {HAIRLINE_LABEL: "hairline", EYE_LABEL: "eye_openings", BROW_EDGE_LABEL: "brow_edges"}
+    return REGIONS[label] if label < len(REGIONS) else extra.get(label, f"region{label}")
 
 
 def figures(G: Generator, data: torch.Tensor, out_dir: Path, truncation_psi: float = 1.0) -> list[Path]:
