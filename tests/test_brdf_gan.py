@@ -823,13 +823,12 @@ def test_region_moments_matches_reference_known_values_gradients_and_bad_input()
         v = x[:, :, regions == lab].double().numpy()
         torch.testing.assert_close(m[:, j, 0].double(), torch.from_numpy(v.mean(2)), atol=1e-6, rtol=1e-5)
         torch.testing.assert_close(m[:, j, 1].double(), torch.from_numpy(v.std(2)), atol=1e-5, rtol=1e-4)
-    # known values: a region half 0.2 and half 0.6 has mean 0.4 and std 0.2; a constant one std 0
+    # known values: region 2 (columns 2-6) 3 / 5 at 0.2 and 2 / 5 at 0.6 has mean 0.36 and std 0.4 sqrt(0.24) =
+    # 0.196; region 7, constant, std 0
     y = torch.full((1, 1, r, r), 0.3)
-    y[0, 0, :, 2:4] = 0.2
-    y[0, 0, :, 4 : r // 2 - 1] = 0.6
     lab2 = regions == 2
     y[0, 0, lab2 & (torch.arange(r) < 5)] = 0.2
-    y[0, 0, lab2 & (torch.arange(r) >= 5)] = 0.6  # columns 2-4 vs 5-6: 3 / 5 and 2 / 5 of the region
+    y[0, 0, lab2 & (torch.arange(r) >= 5)] = 0.6
     got = region_moments(y, regions)[0, :, :, 0]
     torch.testing.assert_close(got, torch.tensor([[0.36, 0.196], [0.3, 0.0]]), atol=1e-3, rtol=0)
     x64 = torch.rand(2, 3, r, r, dtype=torch.float64, generator=g, requires_grad=True)
