@@ -31,6 +31,11 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
            "data_spectrum", "spectrum_loss", "colour_loss", "set_branch_noise"]
 
 
+# the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
+# ``running_{term}`` in the state, and its measure in ``_region_measures``
+_REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour")
+
+
 @dataclass(frozen=True)
 class TrainSettings:
     batch: int = 4  # more updates per CPU-second than 8; StyleGAN2 trains fine at small batches
@@ -149,49 +154,26 @@ class TrainSettings:
             raise ValueError(f"ada_target must be in (0, 1), got {self.ada_target}")
         if not (self.moment_weight >= 0 and math.isfinite(self.moment_weight)):
             raise ValueError(f"moment_weight must be finite and >= 0, got {self.moment_weight}")
-        if not (self.moment_drift_weight >= 0 and math.isfinite(self.moment_drift_weight)):
-            raise ValueError(f"moment_drift_weight must be finite and >= 0, got {self.moment_drift_weight}")
-        if not 0 <= self.moment_drift_beta < 1:
-            raise ValueError(f"moment_drift_beta must be in [0, 1), got {self.moment_drift_beta}")
-        if not (self.link_weight >= 0 and math.isfinite(self.link_weight)):
-            raise ValueError(f"link_weight must be finite and >= 0, got {self.link_weight}")
-        if not 0 <= self.link_beta < 1:
-            raise ValueError(f"link_beta must be in [0, 1), got {self.link_beta}")
-        if not (self.coherence_weight >= 0 and math.isfinite(self.coherence_weight)):
-            raise ValueError(f"coherence_weight must be finite and >= 0, got {self.coherence_weight}")
-        if not 0 <= self.coherence_beta < 1:
-            raise ValueError(f"coherence_beta must be in [0, 1), got {self.coherence_beta}")
-        if not (self.band_weight >= 0 and math.isfinite(self.band_weight)):
-            raise ValueError(f"band_weight must be finite and >= 0, got {self.band_weight}")
-        if not 0 <= self.band_beta < 1:
-            raise ValueError(f"band_beta must be in [0, 1), got {self.band_beta}")
+        for term in ("moment_drift", "link", *_REGION_TERMS):  # the drift-style terms: a weight and a running mean's decay
+            weight, beta = getattr(self, f"{term}_weight"), getattr(self, f"{term}_beta")
+            if not (weight >= 0 and math.isfinite(weight)):
+                raise ValueError(f"{term}_weight must be finite and >= 0, got {weight}")
+            if not 0 <= beta < 1:
+                raise ValueError(f"{term}_beta must be in [0, 1), got {beta}")
         if not 1 <= self.band_levels <= 3:
             raise ValueError(f"band_levels must be 1, 2 or 3, got {self.band_levels}")
-        if not (self.spectrum_weight >= 0 and math.isfinite(self.spectrum_weight)):
-            raise ValueError(f"spectrum_weight must be finite and >= 0, got {self.spectrum_weight}")
-        if not 0 <= self.spectrum_beta < 1:
-            raise ValueError(f"spectrum_beta must be in [0, 1), got {self.spectrum_beta}")
-        if not (self.relief_weight >= 0 and math.isfinite(self.relief_weight)):
-            raise ValueError(f"relief_weight must be finite and >= 0, got {self.relief_weight}")
-        if not 0 <= self.relief_beta < 1:
-            raise ValueError(f"relief_beta must be in [0, 1), got {self.relief_beta}")
-        if not (self.colour_weight >= 0 and math.isfinite(self.colour_weight)):
-            raise ValueError(f"colour_weight must be finite and >= 0, got {self.colour_weight}")
-        if not 0 <= self.colour_beta < 1:
-            raise ValueError(f"colour_beta must be in [0, 1), got {self.colour_beta}")
         for name in ("hairline_region", "side_regions", "eye_region", "brow_edge_region"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
             if getattr(self, name) and not self.region_terms:
-                raise ValueError(f"{name} needs a per-region term: coherence_weight, band_weight, spectrum_weight, "
-                                 f"relief_weight or colour_weight > 0, got {self.coherence_weight}, {self.band_weight}, "
-                                 f"{self.spectrum_weight}, {self.relief_weight}, {self.colour_weight}")
+                weights = [f"{term}_weight" for term in _REGION_TERMS]
+                raise ValueError(f"{name} needs a per-region term: {', '.join(weights[:-1])} or {weights[-1]} > 0, got "
+                                 f"{', '.join(str(getattr(self, w)) for w in weights)}")
 
     @property
     def region_terms(self) -> bool:
         """Whether any per-region drift term is on (they need ``TrainState.regions``)."""
-        return any(w > 0 for w in (self.coherence_weight, self.band_weight, self.spectrum_weight, self.relief_weight,
-                                   self.colour_weight))
+        return any(getattr(self, f"{term}_weight") > 0 for term in _REGION_TERMS)
 
 
 @dataclass
@@ -496,6 +478,14 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
             "spectrum": _albedo_spectra, "relief": _albedo_relief, "colour": _albedo_colour}
 
 
+# per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
+# as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum: mean
+# TV distance of the spectra; colour: mean |running - target| / target (floored)
+_REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
+                  "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
+                  "colour": (colour_loss, _colour_gap)}
+
+
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
                  running: torch.Tensor | None, measure: Callable[[torch.Tensor], torch.Tensor],
                  loss: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
@@ -555,26 +545,19 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         link = float(links.detach().mean())
         state.running_link = link if state.running_link is None else state.running_link + (1 - t.link_beta) * (link - state.running_link)
         loss_link = link_loss(links, state.running_link, state.link_target)
-    measure = _region_measures(t)
-    loss_coh, state.running_coherence, coh_gap = _region_term(
-        "coherence", t.coherence_weight, t.coherence_beta, state.regions, state.coherence_target, state.running_coherence,
-        lambda regions: measure["coherence"](fake, regions), coherence_loss, _abs_gap)
-    loss_band, state.running_band, band_gap = _region_term(
-        "band", t.band_weight, t.band_beta, state.regions, state.band_target, state.running_band,
-        lambda regions: measure["band"](fake, regions), band_loss, _relative_gap)
-    loss_spec, state.running_spectrum, spec_gap = _region_term(
-        "spectrum", t.spectrum_weight, t.spectrum_beta, state.regions, state.spectrum_target, state.running_spectrum,
-        lambda regions: measure["spectrum"](fake, regions), spectrum_loss, _spectrum_gap)
-    loss_relief, state.running_relief, relief_gap = _region_term(
-        "relief", t.relief_weight, t.relief_beta, state.regions, state.relief_target, state.running_relief,
-        lambda regions: measure["relief"](fake, regions), coherence_loss, _abs_gap)
-    loss_colour, state.running_colour, colour_gap = _region_term(
-        "colour", t.colour_weight, t.colour_beta, state.regions, state.colour_target, state.running_colour,
-        lambda regions: measure["colour"](fake, regions), colour_loss, _colour_gap)
+    total = loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
+    gaps: dict[str, float] = {}
+    for term, measure in _region_measures(t).items():
+        weight = getattr(t, f"{term}_weight")
+        loss, running, gap = _region_term(
+            term, weight, getattr(t, f"{term}_beta"), state.regions, getattr(state, f"{term}_target"),
+            getattr(state, f"running_{term}"), lambda regions, f=measure: f(fake, regions), *_REGION_LOSSES[term])
+        setattr(state, f"running_{term}", running)
+        total = total + weight * loss
+        if gap is not None:
+            gaps[f"{term}_gap"] = gap
     state.opt_G.zero_grad(set_to_none=True)
-    (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
-     + t.coherence_weight * loss_coh + t.band_weight * loss_band + t.spectrum_weight * loss_spec
-     + t.relief_weight * loss_relief + t.colour_weight * loss_colour).backward()
+    total.backward()
     state.opt_G.step()
     # discriminator: softplus(D(G(z))) + softplus(-D(x)), and lazily gamma/2 |grad_x D(x)|^2
     G.requires_grad_(False)
@@ -621,16 +604,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         out["moment_drift"] = drift  # |running - target|^2, the drift term's distance
     if link is not None:
         out["link"] = link  # this batch's mean detail_link (the target: state.link_target)
-    if coh_gap is not None:
-        out["coherence_gap"] = coh_gap  # mean over regions of |running - target| albedo coherence
-    if band_gap is not None:
-        out["band_gap"] = band_gap  # mean over regions, bands and channels of |running / target - 1|
-    if spec_gap is not None:
-        out["spectrum_gap"] = spec_gap  # mean over regions of the running spectrum's TV distance to the target
-    if relief_gap is not None:
-        out["relief_gap"] = relief_gap  # mean over regions and components of |running - target| correlation
-    if colour_gap is not None:
-        out["colour_gap"] = colour_gap  # mean over regions, moments and channels of |running - target| / target (floored)
+    out.update(gaps)  # each active per-region term's distance to its target (``_REGION_LOSSES``' gap)
     return out
 
 
@@ -877,26 +851,11 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if split != t.side_regions:
             raise ValueError(f"train: side_regions is {t.side_regions} but state.regions is {'' if split else 'not '}split "
                              f"into sides (labels >= {SIDE_OFFSET}); build it with data.load_regions(resolution, sides={t.side_regions})")
-    if t.coherence_weight > 0 and state.coherence_target is None:
-        if state.regions is None:
-            raise ValueError(f"train: coherence_weight {t.coherence_weight} needs state.regions (the UV region labels)")
-        state.coherence_target = data_coherence(data, state.regions)
-    if t.band_weight > 0 and state.band_target is None:
-        if state.regions is None:
-            raise ValueError(f"train: band_weight {t.band_weight} needs state.regions (the UV region labels)")
-        state.band_target = data_band(data, state.regions, t.band_levels)
-    if t.spectrum_weight > 0 and state.spectrum_target is None:
-        if state.regions is None:
-            raise ValueError(f"train: spectrum_weight {t.spectrum_weight} needs state.regions (the UV region labels)")
-        state.spectrum_target = data_spectrum(data, state.regions)
-    if t.relief_weight > 0 and state.relief_target is None:
-        if state.regions is None:
-            raise ValueError(f"train: relief_weight {t.relief_weight} needs state.regions (the UV region labels)")
-        state.relief_target = data_relief(data, state.regions)
-    if t.colour_weight > 0 and state.colour_target is None:
-        if state.regions is None:
-            raise ValueError(f"train: colour_weight {t.colour_weight} needs state.regions (the UV region labels)")
-        state.colour_target = data_colour(data, state.regions)
+    for term, measure in _region_measures(t).items():  # the per-region terms' targets: the data's mean measure
+        if getattr(t, f"{term}_weight") > 0 and getattr(state, f"{term}_target") is None:
+            if state.regions is None:
+                raise ValueError(f"train: {term}_weight {getattr(t, f'{term}_weight')} needs state.regions (the UV region labels)")
+            setattr(state, f"{term}_target", _data_mean(lambda x, f=measure: f(x, state.regions), data, 512, 64))
     if state.nimg > 0:  # a resume: a checkpoint from before 2026-11-27 holds no running means, and one whose
         # regions or bands changed holds running means of another shape
         started = warm_running(state)
