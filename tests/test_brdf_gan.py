@@ -1271,6 +1271,83 @@ def test_brow_edges_ring_the_data_brows_and_are_a_region_of_their_own():
     assert bool((load_regions(16, brows=True) == BROW_EDGE_LABEL).any())
 
 
+def test_drift_on_ema_running_means_follow_g_ema_and_g_still_learns():
+    """drift_on_ema: the running means follow the maps of G_ema, the generator that ships (G's detail swings within
+    a few steps, and G_ema kept four fifths of it, docs/brdf_gan.md); the gradient still reaches G."""
+    from fitme_cli.reflectance.gan.metrics import detail_link
+    from fitme_cli.reflectance.gan.train import _albedo_bands, clear_running
+
+    with pytest.raises(ValueError, match="drift_on_ema must be a bool, got 1"):
+        TrainSettings(drift_on_ema=1)
+    data, regions = _tiny_data(), _two_regions()
+    for on in (False, True):
+        state = new_state(TINY, TrainSettings(batch=4, kimg=1, band_weight=0.5, link_weight=1.0, drift_on_ema=on))
+        state.regions, state.link_target = regions, 0.3
+        with torch.no_grad():
+            for name, m in state.G_ema.named_modules():  # G_ema draws the mean image whatever z and noise
+                if name.endswith("to_image"):
+                    m.weight.zero_()
+                    m.bias.zero_()
+            mean = state.G_ema.synthesis.mean_image[None].clone()
+            state.band_target = torch.ones_like(_albedo_bands(mean, regions, 2)[0])
+        before = [p.clone() for p in state.G.parameters()]
+        train_step(state, data[:4])
+        want_band, want_link = _albedo_bands(mean, regions, 2)[0], float(detail_link(mean)[0])
+        assert torch.allclose(state.running_band, want_band) is on
+        assert math.isclose(state.running_link, want_link, rel_tol=1e-5, abs_tol=1e-6) is on
+        assert any(not torch.equal(a, p) for a, p in zip(before, state.G.parameters()))
+    clear_running(state)
+    assert state.running_band is None and state.running_link is None and state.running_colour is None
+
+
+def test_hair_share_known_values_tone_invariance_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import hair_share
+
+    a = torch.full((2, 3, 16, 16), 0.2)
+    a[0, :, :, :8] = torch.tensor([0.05, 0.3]).repeat(4)  # columns alternating dark and light: strands
+    striped, flat = torch.zeros(16, 16, dtype=torch.bool), torch.zeros(16, 16, dtype=torch.bool)
+    striped[:, 2:6], flat[:, 11:15] = True, True  # each more than half a window (2 texels) from the other
+    torch.testing.assert_close(hair_share(a, striped), torch.tensor([1.0, 0.0]))
+    torch.testing.assert_close(hair_share(a, flat), torch.tensor([0.0, 0.0]))
+    torch.testing.assert_close(hair_share(a, striped | flat), torch.tensor([0.5, 0.0]))
+    # a contrast, not an amplitude: the same strands on dark skin read the same
+    torch.testing.assert_close(hair_share(0.1 * a, striped | flat), torch.tensor([0.5, 0.0]))
+    assert float(hair_share(a, striped, threshold=2.0)[0]) == 0.0  # log(0.3 / 0.05) / 2 = 0.9 < 2
+    with pytest.raises(ValueError, match=r"expected float \(N, 3, R, R\) albedo and an \(R, R\) bool zone matching it, got \(2, 4, 16, 16\)"):
+        hair_share(torch.zeros(2, 4, 16, 16), striped)
+    with pytest.raises(ValueError, match=r"got \(2, 3, 16, 16\) torch.float32 and \(8, 8\) torch.bool"):
+        hair_share(a, striped[:8, :8])
+    with pytest.raises(ValueError, match="empty"):
+        hair_share(a, torch.zeros(16, 16, dtype=torch.bool))
+    with pytest.raises(ValueError, match="window must be odd and >= 1, got 4"):
+        hair_share(a, striped, window=4)
+
+
+def test_beard_zone_holds_the_data_beards():
+    """The card's beard measure (G's beards came and went while every mean held, docs/brdf_gan.md): the zone lies on
+    the lower face, and the data's beards read as hair there, its shaven faces not."""
+    from fitme_cli.perception.registry import ensure_models
+    from fitme_cli.reflectance.gan.data import beard_zone, load_regions
+    from fitme_cli.reflectance.gan.metrics import hair_share
+    from fitme_cli.reflectance.skin_data import SkinDataSettings, generate_sample, skin_layout
+
+    zone = beard_zone(256)
+    assert zone.dtype == torch.bool and 3000 < int(zone.sum()) < 12000
+    assert float((load_regions(256)[zone] != 255).float().mean()) > 0.95
+    rows = torch.nonzero(zone)[:, 0].float()
+    assert float(rows.mean()) > 128  # UV v runs down the face: the lower half
+    layout = skin_layout(ensure_models(["shape_model"]), 256)
+
+    def shares(beard_probability):
+        maps = [generate_sample(layout, 0, i, SkinDataSettings(size=256, beard_probability=beard_probability)).albedo
+                for i in range(4)]
+        return hair_share(torch.from_numpy(np.stack(maps)).permute(0, 3, 1, 2).float(), zone)
+
+    bearded, shaven = shares(1.0), shares(0.0)
+    assert float(bearded.median()) > 0.5 and float(shaven.max()) < 0.05, (bearded, shaven)
+    assert bool(beard_zone(16).any())
+
+
 @pytest.mark.parametrize("name, label, arg", [("hairline_region", 8, "hairline"), ("eye_region", 9, "eyes"),
                                              ("brow_edge_region", 10, "brows")])
 def test_carved_regions_need_a_per_region_term_and_their_label(name, label, arg):
@@ -1505,6 +1582,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "added D's joint branch" in r.output and "widened" not in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     assert state.gan.d_joint_branch and state.D.joint_branch is not None and state.nimg == 24
+    # turning drift_on_ema on restarts the running means, which followed G, from G_ema's maps
+    r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--kimg", "0.028", "--resume", "--drift-on-ema",
+                                  "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "running means started from 16 batches of fakes: moments, link, coherence, band, spectrum, relief, colour" in r.output
+    assert load_checkpoint(run / "checkpoint.safetensors").train.drift_on_ema is True
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "other"), "--resume"])
     assert r.exit_code == 10 and "nothing to resume" in r.output
     r = CliRunner().invoke(main, ["train", str(tmp_path / "missing"), "-o", str(tmp_path / "x"), "--resolution", "16"])
@@ -1591,7 +1674,13 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_band_ratio_by_region", "albedo_spectrum_tv_by_region", "modality_consistency",
                       "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step", "albedo_band_ratio_hairline",
                       "albedo_band_ratio_by_side", "albedo_normal_relief_by_region", "albedo_moment_ratio_by_region",
-                      "albedo_band_ratio_features"}
+                      "albedo_band_ratio_features", "beard_hair_share"}
+    beard = m["beard_hair_share"]
+    assert list(beard) == ["data", "gan"] and all(
+        list(v) == ["q25_q50_q75_q90", "samples_at_least_0.3", "samples_at_least_0.6"] for v in beard.values())
+    for v in beard.values():
+        q = v["q25_q50_q75_q90"]
+        assert q == sorted(q) and 0 <= q[0] and q[-1] <= 1 and 0 <= v["samples_at_least_0.6"] <= v["samples_at_least_0.3"] <= 1
     moments = m["albedo_moment_ratio_by_region"]  # the regions, the eye openings and the brow edges
     assert set(moments) == set(m["albedo_band_ratio_by_region"]) | {"eye_openings", "brow_edges"}
     features = m["albedo_band_ratio_features"]

@@ -44,7 +44,7 @@ _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", 
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
-                "hairline_region", "side_regions", "eye_region", "brow_edge_region")
+                "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
 
 
 @click.command("train")
@@ -110,6 +110,10 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--brow-edge-region/--no-brow-edge-region", default=None,
               help="The per-region terms also measure a ring along the data's brow edges as a region of its own, against "
                    "soft brows (not in the paper; may change on --resume). [off]")
+@click.option("--drift-on-ema/--no-drift-on-ema", default=None,
+              help="The drift terms' running means follow G_ema's maps (the model that ships) instead of the training "
+                   "G's; one more forward pass per step (not in the paper; may change on --resume, which then restarts "
+                   "the running means). [off]")
 @click.option("--branch-noise", type=click.FloatRange(-1, 1),
               help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
                    "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")
@@ -140,8 +144,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..reflectance.gan.data import load_dataset, load_regions
     from ..reflectance.gan.metrics import detail_region
     from ..reflectance.gan.networks import GanSettings
-    from ..reflectance.gan.train import (TrainSettings, load_checkpoint, new_state, reset_mean_image, save_checkpoint,
-                                         set_branch_noise, set_learning_rates, train)
+    from ..reflectance.gan.train import (TrainSettings, clear_running, load_checkpoint, new_state, reset_mean_image,
+                                         save_checkpoint, set_branch_noise, set_learning_rates, train)
 
     from ..reflectance.gan.data import find_samples
 
@@ -183,7 +187,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
                       "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
                       "spectrum_weight", "relief_weight", "colour_weight", "hairline_region", "side_regions",
-                      "eye_region", "brow_edge_region")
+                      "eye_region", "brow_edge_region", "drift_on_ema")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:
@@ -193,6 +197,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         new = {k: v for k, v in cfg["train"].items() if k in changeable and k != "ada"}
         if flags.get("ada") is not None:
             new["ada"] = flags["ada"]
+        if new.get("drift_on_ema", state.train.drift_on_ema) != state.train.drift_on_ema:
+            clear_running(state)  # they followed the other generator: ``train`` restarts them from the one now tracked
         state.train = dataclasses.replace(state.train, **new)
         set_learning_rates(state)
         # the architecture is the run's own, except that its channels may grow (gan/widen.py: the wider

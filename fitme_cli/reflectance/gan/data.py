@@ -19,7 +19,7 @@ from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
 __all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "split_sides",
-           "eye_openings", "brow_edges", "HAIRLINE_LABEL", "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
+           "eye_openings", "brow_edges", "beard_zone", "HAIRLINE_LABEL", "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
 
@@ -180,6 +180,12 @@ def brow_edges(resolution: int) -> torch.Tensor:
         return (cv2.dilate(inside, k) > 0) & ~(cv2.erode(inside, k) > 0)
 
     return _layout_mask(resolution, ring, "brows")
+
+
+def beard_zone(resolution: int) -> torch.Tensor:
+    """(R, R) bool: where the training data grows stubble and beards (the layout's ``beard`` > 0.5): the jaw, chin
+    and upper lip, below a line from the sideburns to just under the nose."""
+    return _layout_mask(resolution, lambda m: m > 0.5, "beard")
 
 
 # added by ``split_sides`` to the label of each texel right of the UV midline; above every base label

@@ -22,6 +22,9 @@
 - ``region_spectrum`` / ``spectrum_distance``: how the finest band's energy is spread over 2-D
   frequencies, per region. The band energies and coherences cannot tell sparse pores from a regular
   texel lattice of the same energy; the spectrum can (a lattice is a peak).
+- ``hair_share``: per sample, the share of a zone that reads as hair (a rough local texture). The data's beards
+  are there or not (a bimodal share); the means over samples that the other measures take cannot see a G that
+  draws a thin beard on every face, or none.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "feature_parts", "region_albedo", "frechet_distance", "detail_region", "detail_link",
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
-           "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments"]
+           "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -162,6 +165,25 @@ def region_moments(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     zero = var <= 0
     std = torch.where(zero, torch.ones_like(var), var).sqrt() * ~zero
     return torch.stack([mean, std], 1).permute(0, 3, 1, 2)
+
+
+def hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int = 5, threshold: float = 0.12) -> torch.Tensor:
+    """albedo: (N, 3, R, R) linear, [0, 1]; zone: (R, R) bool -> (N,) float in [0, 1]: per sample, the share of the
+    zone's texels where the std of the log luminance over a ``window``^2 box exceeds ``threshold``: hair strands
+    against skin's pores and freckles (on the data's beard zone, shaven faces read below 0.05 and most bearded
+    ones above 0.8). The log makes the threshold one contrast for every skin tone."""
+    if albedo.ndim != 4 or albedo.shape[1] != 3 or not albedo.is_floating_point() or zone.shape != albedo.shape[2:] \
+            or zone.dtype != torch.bool:
+        raise ValueError(f"expected float (N, 3, R, R) albedo and an (R, R) bool zone matching it, got "
+                         f"{tuple(albedo.shape)} {albedo.dtype} and {tuple(zone.shape)} {zone.dtype}")
+    if not bool(zone.any()):
+        raise ValueError("expected a zone of at least one texel, got an empty one")
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be odd and >= 1, got {window}")
+    lum = albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
+    mean = F.avg_pool2d(lum, window, 1, window // 2, count_include_pad=False)
+    var = F.avg_pool2d(lum.square(), window, 1, window // 2, count_include_pad=False) - mean.square()
+    return (var.clamp_min(0).sqrt() > threshold)[:, 0][:, zone].to(albedo.dtype).mean(1)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

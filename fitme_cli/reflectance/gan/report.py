@@ -8,18 +8,19 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, brow_edges, eye_openings, hairline_zones,
-                   load_dataset, load_regions, split_sides)
+from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, brow_edges, eye_openings,
+                   hairline_zones, load_dataset, load_regions, split_sides)
 from .latents import sample_z
-from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, interpolation_smoothness,
-                      modality_consistency, reflectance_features, region_albedo, region_albedo_bands, region_band_energy,
-                      region_labels, region_moments, region_relief, region_spectrum,
-                      spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
+from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, hair_share,
+                      interpolation_smoothness, modality_consistency, reflectance_features, region_albedo,
+                      region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief,
+                      region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -65,20 +66,30 @@ def _encoded(stats_mean, stats_std):
     return mean, std
 
 
+@dataclass(frozen=True)
+class _Side:
+    """One side of the comparison (``_measure``): generated samples or the data's. Tensors are float32, linear
+    albedo (mean of r, g, b where a band RMS is said), averaged over samples unless per-sample."""
+    stats: ChannelStats
+    features: np.ndarray  # (N, 224) ``metrics.reflectance_features``
+    consistency: tuple[float, float]  # ``metrics.modality_consistency``, first 200 samples
+    parts: StdParts  # ``metrics.std_parts``, first 200 samples
+    coherence: np.ndarray  # ``metrics.strand_coherence``, first 200 samples
+    spectra: torch.Tensor  # (N, k, 16, 9) the albedo luminance's finest-band spectra per region
+    hairline: torch.Tensor  # (3 zones, 3 bands) band RMS in ``data.hairline_zones``
+    sides: torch.Tensor  # (k,) finest-band RMS in each half of each region (``data.split_sides``)
+    relief: torch.Tensor  # (k, 2) ``metrics.region_relief`` against the normals' x and y
+    moments: torch.Tensor  # (k', 2, 3) ``metrics.region_moments`` per region of ``features`` (eyes, brow edges carved)
+    feature_bands: torch.Tensor  # (k', 3 bands) band RMS per region of ``features``
+    beard: torch.Tensor  # (N,) ``metrics.hair_share`` of ``data.beard_zone``
+
+
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
-             mapped: torch.Tensor, skin: torch.Tensor, zones: torch.Tensor, sides: torch.Tensor, features: torch.Tensor
-             ) -> tuple[ChannelStats, np.ndarray, tuple[float, float], StdParts, np.ndarray, torch.Tensor, torch.Tensor,
-                        torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One side of the comparison (generated when src is None): channel stats, reflectance features,
-    modality consistency, the std by scale and the strand coherence (these three on the first 200 samples),
-    the linear albedo luminance's finest-band spectra (N, k, 16, 9), and the linear albedo's band RMS
-    (mean of r, g, b) in the hairline's three zones (``data.hairline_zones``), (3, 3 bands) averaged over samples,
-    its finest band's RMS in each half of each region (``sides``: ``data.split_sides``), (k,) likewise, and
-    the per-region correlation of the albedo luminance's finest band with the normals' x and y
-    (``metrics.region_relief``), (k, 2) likewise, and in each region with the eye openings and brow edges carved in
-    (``features``: ``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``), the linear albedo's mean and std per channel
-    (``metrics.region_moments``), (k', 2, 3) likewise, and its band RMS (mean of r, g, b), (k', 3 bands) likewise."""
-    st, fs, cm, sp, hz, sd, rl, mo, fb = _Stats(mapped), [], [], [], [], [], [], [], []
+             mapped: torch.Tensor, skin: torch.Tensor, zones: torch.Tensor, sides: torch.Tensor, features: torch.Tensor,
+             beard: torch.Tensor) -> _Side:
+    """One side of the comparison (generated when src is None); ``features``: the regions with the eye openings and
+    brow edges carved in (``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``); ``beard``: ``data.beard_zone``."""
+    st, fs, cm, sp, hz, sd, rl, mo, fb, bs = _Stats(mapped), [], [], [], [], [], [], [], [], []
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
         fs.append(reflectance_features(x, regions))
@@ -88,12 +99,13 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         rl.append(region_relief(x[:, :3].mean(1), x[:, 4:6], regions))
         mo.append(region_moments(x[:, :3], features))
         fb.append(region_band_energy(x[:, :3], features).mean(3))
+        bs.append(hair_share(x[:, :3], beard))
         if sum(len(c) for c in cm) < 200:
             cm.append(x)
     first = torch.cat(cm)[:200]
-    return (st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
-            strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0), torch.cat(sd).mean(0),
-            torch.cat(rl).mean(0), torch.cat(mo).mean(0), torch.cat(fb).mean(0))
+    return _Side(st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
+                 strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0), torch.cat(sd).mean(0),
+                 torch.cat(rl).mean(0), torch.cat(mo).mean(0), torch.cat(fb).mean(0), torch.cat(bs))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -113,10 +125,11 @@ def evaluate_psis(G: Generator, data: torch.Tensor, regions: torch.Tensor, trunc
     features = regions.clone()
     features[eye_openings(regions.shape[0])] = EYE_LABEL
     features[brow_edges(regions.shape[0])] = BROW_EDGE_LABEL
+    beard = beard_zone(regions.shape[0])
     n_real = min(n_real, len(data))
-    real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin, zones, sides, features)
-    return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin, zones, sides, features), real, regions,
-                     features, seed, psi) for psi in truncation_psis]
+    real = _measure(G, data[:n_real], n_real, seed, 1.0, regions, mapped, skin, zones, sides, features, beard)
+    return [_compare(G, _measure(G, None, n_fake, seed, psi, regions, mapped, skin, zones, sides, features, beard), real,
+                     regions, features, seed, psi) for psi in truncation_psis]
 
 
 def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
@@ -128,23 +141,30 @@ def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
         yield w[:1] + t * (w[1:] - w[:1])
 
 
-def _compare(G: Generator, gan, real, regions: torch.Tensor, features: torch.Tensor, seed: int, truncation_psi: float) -> dict:
-    (gan_stats, gan_feats, gan_cons, gan_parts, gan_coh, gan_spec, gan_hair, gan_side, gan_relief, gan_mom, gan_fb), \
-        (data_stats, data_feats, data_cons, data_parts, data_coh, data_spec, data_hair, data_side, data_relief, data_mom,
-         data_fb) = gan, real
+def _beard_shares(share: torch.Tensor) -> dict:
+    """(N,) ``metrics.hair_share`` of the beard zone -> its quartiles and 90th percentile, and the share of samples
+    whose zone is at least 0.3 and 0.6 hair."""
+    q = share.double().quantile(torch.tensor([0.25, 0.5, 0.75, 0.9], dtype=torch.float64))
+    return {"q25_q50_q75_q90": [round(float(v), 3) for v in q],
+            "samples_at_least_0.3": round(float((share >= 0.3).double().mean()), 3),
+            "samples_at_least_0.6": round(float((share >= 0.6).double().mean()), 3)}
+
+
+def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, features: torch.Tensor, seed: int,
+             truncation_psi: float) -> dict:
     flabels = region_labels(features)
-    half = len(data_feats) // 2
-    fm, fsd = _encoded(gan_stats.mean, gan_stats.std)
-    rm, rsd = _encoded(data_stats.mean, data_stats.std)
+    half = len(real.features) // 2
+    fm, fsd = _encoded(gan.stats.mean, gan.stats.std)
+    rm, rsd = _encoded(real.stats.mean, real.stats.std)
     per_channel = {name: {"data_mean": round(rm[i], 4), "gan_mean": round(fm[i], 4),
                           "mean_rel_diff": round(abs(fm[i] - rm[i]) / abs(rm[i]), 4),
                           "data_std": round(rsd[i], 4), "gan_std": round(fsd[i], 4),
                           "std_rel_diff": round(abs(fsd[i] - rsd[i]) / rsd[i], 4)} for i, name in enumerate(_CHANNELS)}
     # which scale a std difference lives at: between samples, regions and patches, or grain (metrics.std_parts)
-    by_scale = {name: {part: round(getattr(gan_parts, part)[i] / max(getattr(data_parts, part)[i], 1e-12), 3)
+    by_scale = {name: {part: round(getattr(gan.parts, part)[i] / max(getattr(real.parts, part)[i], 1e-12), 3)
                        for part in ("between", "coarse", "fine")} for i, name in enumerate(_CHANNELS)}
-    fa, fb = data_feats[:half], data_feats[half:]
-    fg = gan_feats[: len(fb)]
+    fa, fb = real.features[:half], real.features[half:]
+    fg = gan.features[: len(fb)]
     fd_gan = frechet_distance(fg, fb)
     fd_split = frechet_distance(fa, fb)
     # where the distance comes from: the tone of each region, or its detail
@@ -153,17 +173,17 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, features: torch.Ten
         by_part[part] = {"gan_vs_heldout_half": round(frechet_distance(gan_p, b_p), 4),
                          "half_vs_half": round(frechet_distance(a_p, b_p), 4)}
     q = (0.1, 0.5, 0.9)
-    tones = {"gan": region_albedo(gan_feats), "data": region_albedo(data_feats)}
+    tones = {"gan": region_albedo(gan.features), "data": region_albedo(real.features)}
     region_tone = {_region_name(lab): {name: [round(float(v), 4) for v in np.quantile(tones[name][:, j], q)]
                                        for name in ("data", "gan")} for j, lab in enumerate(region_labels(regions))}
     # where the albedo's grain is too faint or too strong: per region and band (finest first), G's mean RMS
     # over the data's (mean of r, g, b)
-    band_ratio = region_albedo_bands(gan_feats).mean(0) / np.maximum(region_albedo_bands(data_feats).mean(0), 1e-12)
+    band_ratio = region_albedo_bands(gan.features).mean(0) / np.maximum(region_albedo_bands(real.features).mean(0), 1e-12)
     # where in frequency the albedo's finest grain sits (a lattice is a peak): per region with whole 16^2
     # windows, the spectra's total variation distance, G against the held-out half and half against half,
     # and the frequency (cycles per texel) where G's spectrum most exceeds the data's
-    sa, sb = data_spec[:half], data_spec[half:]
-    sg = gan_spec[: len(sb)]
+    sa, sb = real.spectra[:half], real.spectra[half:]
+    sg = gan.spectra[: len(sb)]
     tv_gan, tv_split, peaks = spectrum_distance(sg, sb), spectrum_distance(sa, sb), spectrum_excess_peak(sg, sb)
     spectrum = {_region_name(lab): {"gan_vs_heldout_half": round(float(tv_gan[j]), 3),
                                     "half_vs_half": round(float(tv_split[j]), 3),
@@ -184,31 +204,34 @@ def _compare(G: Generator, gan, real, regions: torch.Tensor, features: torch.Ten
                                         for j, lab in enumerate(region_labels(regions))},
         "albedo_spectrum_tv_by_region": spectrum,
         # a soft hairline told G's maps from the data's (docs/brdf_gan.md): per zone and band, G's RMS over the data's
-        "albedo_band_ratio_hairline": {zone: [round(float(g / max(float(d), 1e-12)), 3) for g, d in zip(gan_hair[j], data_hair[j])]
+        "albedo_band_ratio_hairline": {zone: [round(float(g / max(float(d), 1e-12)), 3) for g, d in zip(gan.hairline[j], real.hairline[j])]
                                        for j, zone in enumerate(("face_side", "hairline", "scalp_side"))},
         # grain pulled onto one side of a region told G's eyes from the data's (docs/brdf_gan.md): per region, the
         # finest band's RMS, G's over the data's, in its [left, right] half as the UV map shows it (u < 0.5, u >= 0.5)
-        "albedo_band_ratio_by_side": _by_side(gan_side / data_side.clamp(min=1e-12), regions),
+        "albedo_band_ratio_by_side": _by_side(gan.sides / real.sides.clamp(min=1e-12), regions),
         # an albedo embossed by its normals' slope (docs/brdf_gan.md): per region, the mean correlation of the
         # albedo's finest band with the normals' [x, y] (the data's ~0)
-        "albedo_normal_relief_by_region": {_region_name(lab): {"data": [round(float(v), 3) for v in data_relief[j]],
-                                                               "gan": [round(float(v), 3) for v in gan_relief[j]]}
+        "albedo_normal_relief_by_region": {_region_name(lab): {"data": [round(float(v), 3) for v in real.relief[j]],
+                                                               "gan": [round(float(v), 3) for v in gan.relief[j]]}
                                            for j, lab in enumerate(region_labels(regions))},
         # a region of the wrong colour or spread (the eye openings, docs/brdf_gan.md): per region, eye openings and
         # brow edges included, G's mean over the data's of each albedo channel's [r, g, b] mean and within-region std
         "albedo_moment_ratio_by_region": {_region_name(lab): {part: [round(float(g / max(float(d), 1e-12)), 3)
-                                                                     for g, d in zip(gan_mom[j, i], data_mom[j, i])]
+                                                                     for g, d in zip(gan.moments[j, i], real.moments[j, i])]
                                                               for i, part in enumerate(("mean", "std"))}
                                           for j, lab in enumerate(flabels)},
         # soft brows and blobby eyes (docs/brdf_gan.md): per band (finest first), G's albedo RMS over the data's
         "albedo_band_ratio_features": {_region_name(lab): [round(float(g / max(float(d), 1e-12)), 3)
-                                                           for g, d in zip(gan_fb[flabels.index(lab)], data_fb[flabels.index(lab)])]
+                                                           for g, d in zip(gan.feature_bands[flabels.index(lab)], real.feature_bands[flabels.index(lab)])]
                                        for lab in (EYE_LABEL, BROW_EDGE_LABEL) if lab in flabels},
-        "modality_consistency": {"gan_matched": round(gan_cons[0], 3), "gan_mismatched": round(gan_cons[1], 3),
-                                 "data_matched": round(data_cons[0], 3), "data_mismatched": round(data_cons[1], 3)},
+        # beards are there or not in the data, and a G can lose them while every mean above holds (docs/brdf_gan.md):
+        # per sample, the share of the beard zone that reads as hair (``metrics.hair_share``)
+        "beard_hair_share": {"data": _beard_shares(real.beard), "gan": _beard_shares(gan.beard)},
+        "modality_consistency": {"gan_matched": round(gan.consistency[0], 3), "gan_mismatched": round(gan.consistency[1], 3),
+                                 "data_matched": round(real.consistency[0], 3), "data_mismatched": round(real.consistency[1], 3)},
         # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region
-        "strand_coherence_albedo_normal_x": {_region_name(lab): {"data": [round(float(v), 3) for v in data_coh[j]],
-                                                                 "gan": [round(float(v), 3) for v in gan_coh[j]]}
+        "strand_coherence_albedo_normal_x": {_region_name(lab): {"data": [round(float(v), 3) for v in real.coherence[j]],
+                                                                 "gan": [round(float(v), 3) for v in gan.coherence[j]]}
                                              for j, lab in enumerate(region_labels(regions))},
         "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
     }

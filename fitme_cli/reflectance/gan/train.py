@@ -28,7 +28,7 @@ from .networks import Discriminator, GanSettings, Generator, decode_albedo
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
-           "data_spectrum", "spectrum_loss", "colour_loss", "set_branch_noise"]
+           "data_spectrum", "spectrum_loss", "colour_loss", "set_branch_noise", "clear_running"]
 
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
@@ -140,6 +140,12 @@ class TrainSettings:
     # its own (``data.load_regions(brows=True)``), where the data's brows end crisply and G's blurred into the skin,
     # the second tell (docs/brdf_gan.md). Built by the caller like ``hairline_region``
     brow_edge_region: bool = False
+    # not in the paper: the drift terms' running means (moment drift, link and the per-region terms) follow G_ema's
+    # maps, the generator that ships, instead of the training G's; the gradient is still taken through G's batch.
+    # At 172.00 kimg the skin's finest albedo band was 0.66 of the data's for G and 0.81 for G_ema while the band
+    # term's running mean of G's batches said 1.02: G's detail swings within a few steps, and G_ema, the average
+    # of its weights, keeps about four fifths of it (docs/brdf_gan.md). Costs one more G_ema forward per step
+    drift_on_ema: bool = False
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -162,6 +168,8 @@ class TrainSettings:
                 raise ValueError(f"{term}_beta must be in [0, 1), got {beta}")
         if not 1 <= self.band_levels <= 3:
             raise ValueError(f"band_levels must be 1, 2 or 3, got {self.band_levels}")
+        if not isinstance(self.drift_on_ema, bool):
+            raise ValueError(f"drift_on_ema must be a bool, got {self.drift_on_ema!r}")
         for name in ("hairline_region", "side_regions", "eye_region", "brow_edge_region"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
@@ -489,10 +497,13 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
                  running: torch.Tensor | None, measure: Callable[[torch.Tensor], torch.Tensor],
                  loss: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
-                 gap: Callable[[torch.Tensor, torch.Tensor], float]) -> tuple[torch.Tensor, torch.Tensor | None, float | None]:
-    """One per-region drift term of ``train_step`` (coherence, band, spectrum, relief): measure the fake batch
-    (``measure(regions)`` -> (B, m)), update the running mean, and return (loss, running, gap); with weight 0
-    (zero loss, running unchanged, no gap)."""
+                 gap: Callable[[torch.Tensor, torch.Tensor], float],
+                 tracked: Callable[[torch.Tensor], torch.Tensor] | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, float | None]:
+    """One per-region drift term of ``train_step`` (coherence, band, spectrum, relief, colour): measure the fake
+    batch (``measure(regions)`` -> (B, m)), update the running mean (from ``tracked(regions)``, G_ema's batch, when
+    given: ``TrainSettings.drift_on_ema``), and return (loss, running, gap); with weight 0 (zero loss, running
+    unchanged, no gap)."""
     if weight <= 0:
         return torch.zeros(()), running, None
     if target is None or regions is None:
@@ -501,7 +512,7 @@ def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | 
     values = measure(regions)
     if running is not None and running.shape != target.shape:  # e.g. --band-levels changed on --resume
         running = None
-    running = update_running(running, values.mean(0), beta)
+    running = update_running(running, (values if tracked is None else tracked(regions)).mean(0), beta)
     return loss(values, running, target), running, gap(running, target)
 
 
@@ -524,6 +535,11 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     z = torch.randn(b, state.gan.z_dim)
     fake = G.synthesis(_ws(state, z)).cat()
     loss_g = F.softplus(-_d(state, fake)).mean()
+    # with drift_on_ema the drift terms' running means follow G_ema's maps of the same latents (unmixed, as sampled)
+    ema = None
+    if t.drift_on_ema and (t.moment_drift_weight > 0 or t.link_weight > 0 or t.region_terms):
+        with torch.no_grad():
+            ema = state.G_ema.synthesis(state.G_ema.ws(z)).cat()
     if (t.moment_weight > 0 or t.moment_drift_weight > 0) and state.moments is None:
         raise ValueError(f"train_step: moment_weight {t.moment_weight} / moment_drift_weight {t.moment_drift_weight} "
                          "needs state.moments (data_moments of the training data)")
@@ -533,7 +549,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     loss_drift = torch.zeros(())
     drift = None
     if t.moment_drift_weight > 0:
-        state.running_moments = update_running(state.running_moments, batch_moments(fake), t.moment_drift_beta)
+        state.running_moments = update_running(state.running_moments, batch_moments(fake if ema is None else ema), t.moment_drift_beta)
         loss_drift = drift_loss(fake, state.running_moments, state.moments)
         drift = float((state.running_moments - state.moments).square().sum())
     loss_link = torch.zeros(())
@@ -542,7 +558,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         if state.link_target is None:
             raise ValueError(f"train_step: link_weight {t.link_weight} needs state.link_target (data_link of the training data)")
         links = detail_link(fake, state.link_mask)
-        link = float(links.detach().mean())
+        link = float((links.detach() if ema is None else detail_link(ema, state.link_mask)).mean())
         state.running_link = link if state.running_link is None else state.running_link + (1 - t.link_beta) * (link - state.running_link)
         loss_link = link_loss(links, state.running_link, state.link_target)
     total = loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
@@ -551,7 +567,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         weight = getattr(t, f"{term}_weight")
         loss, running, gap = _region_term(
             term, weight, getattr(t, f"{term}_beta"), state.regions, getattr(state, f"{term}_target"),
-            getattr(state, f"running_{term}"), lambda regions, f=measure: f(fake, regions), *_REGION_LOSSES[term])
+            getattr(state, f"running_{term}"), lambda regions, f=measure: f(fake, regions), *_REGION_LOSSES[term],
+            tracked=None if ema is None else lambda regions, f=measure: f(ema, regions))
         setattr(state, f"running_{term}", running)
         total = total + weight * loss
         if gap is not None:
@@ -603,7 +620,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     if drift is not None:
         out["moment_drift"] = drift  # |running - target|^2, the drift term's distance
     if link is not None:
-        out["link"] = link  # this batch's mean detail_link (the target: state.link_target)
+        out["link"] = link  # this batch's mean detail_link, G_ema's with drift_on_ema (the target: state.link_target)
     out.update(gaps)  # each active per-region term's distance to its target (``_REGION_LOSSES``' gap)
     return out
 
@@ -651,7 +668,8 @@ def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
     or with other regions or bands: restarted from one batch, each term pulls along a noisy direction for
     ~1 / (1 - beta) steps. Needs the targets set (``train`` does that).
     Returns the names of the terms started."""
-    t, G = state.train, state.G
+    t = state.train
+    G = state.G_ema if t.drift_on_ema else state.G  # the generator the running means follow
     region = _region_measures(t)
     # running mean -> (weight, measure, target whose shape it must have; None: fixed shape)
     measures = {
@@ -682,6 +700,13 @@ def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
     for k, v in sums.items():
         setattr(state, k, float(v / batches) if k == "running_link" else v / batches)
     return [k.removeprefix("running_") for k in todo]
+
+
+def clear_running(state: TrainState) -> None:
+    """Forget every drift term's running mean (``train`` then restarts them with ``warm_running``): for a resume
+    that changes what they follow (``TrainSettings.drift_on_ema``)."""
+    for k in (*_RUNNING, "running_link"):
+        setattr(state, k, None)
 
 
 def save_checkpoint(state: TrainState, path: Path) -> None:
