@@ -113,7 +113,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--drift-on-ema/--no-drift-on-ema", default=None,
               help="The drift terms' running means follow G_ema's maps (the model that ships) instead of the training "
                    "G's; one more forward pass per step (not in the paper; may change on --resume, which then restarts "
-                   "the running means). [off]")
+                   "the running means; tried once, unstable: docs/brdf_gan.md). [off]")
 @click.option("--branch-noise", type=click.FloatRange(-1, 1),
               help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
                    "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")

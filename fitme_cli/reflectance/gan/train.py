@@ -144,7 +144,9 @@ class TrainSettings:
     # maps, the generator that ships, instead of the training G's; the gradient is still taken through G's batch.
     # At 172.00 kimg the skin's finest albedo band was 0.66 of the data's for G and 0.81 for G_ema while the band
     # term's running mean of G's batches said 1.02: G's detail swings within a few steps, and G_ema, the average
-    # of its weights, keeps about four fifths of it (docs/brdf_gan.md). Costs one more G_ema forward per step
+    # of its weights, keeps about four fifths of it (docs/brdf_gan.md). Costs one more G_ema forward per step.
+    # Tried from 172.00 kimg it was unstable: D won at once, and G_ema's finest skin band went to 3.5x the data's
+    # while G's stayed at 0.7 (a push on G does not move the average of its weights the same way)
     drift_on_ema: bool = False
 
     def __post_init__(self) -> None:
