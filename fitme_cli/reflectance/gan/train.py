@@ -658,8 +658,9 @@ def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.
     opt.load_state_dict(sd)
 
 
-_RUNNING = ("running_moments", "running_coherence", "running_band", "running_spectrum", "running_relief",
-            "running_colour")
+# the tensor running means a checkpoint holds (the link's is a float, in the metadata): the moment drift's and
+# each per-region term's, in ``_REGION_TERMS``' order
+_RUNNING = ("running_moments", *(f"running_{term}" for term in _REGION_TERMS))
 _WARM_BATCHES = 16
 
 
