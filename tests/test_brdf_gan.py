@@ -1323,6 +1323,97 @@ def test_hair_share_known_values_tone_invariance_and_bad_input():
         hair_share(a, striped, window=4)
 
 
+def test_soft_hair_share_tends_to_the_step_has_gradients_and_checks_input():
+    from fitme_cli.reflectance.gan.metrics import hair_share, soft_hair_share
+
+    a = torch.full((2, 3, 16, 16), 0.2)
+    a[0, :, :, :8] = torch.tensor([0.05, 0.3]).repeat(4)  # strands on the left of sample 0, as the step's test
+    zone = torch.zeros(16, 16, dtype=torch.bool)
+    zone[:, 2:6], zone[:, 11:15] = True, True
+    torch.testing.assert_close(soft_hair_share(a, zone, softness=1e-3), hair_share(a, zone))
+    # known values: the strands' log std is ~0.9 (sigmoid ~1), flat skin's ~0.001, (0.001 - 0.12) / 0.02 = -5.95
+    flat = 1 / (1 + math.exp(5.95))
+    torch.testing.assert_close(soft_hair_share(a, zone), torch.tensor([0.5 + flat / 2, flat]), atol=1e-4, rtol=0)
+    assert float(soft_hair_share(a, zone, softness=0.1)[1]) > float(soft_hair_share(a, zone)[1])  # wider: more counts
+    # a gradient, finite on flat albedo too (the root's floor)
+    a64 = (0.2 + 0.05 * torch.rand(1, 3, 8, 8, dtype=torch.float64, generator=torch.Generator().manual_seed(0))).requires_grad_()
+    small = torch.zeros(8, 8, dtype=torch.bool)
+    small[2:6, 2:6] = True
+    assert torch.autograd.gradcheck(lambda t: soft_hair_share(t, small, window=3, threshold=0.05), (a64,))
+    flat_map = torch.full((1, 3, 16, 16), 0.3, requires_grad=True)
+    soft_hair_share(flat_map, zone).sum().backward()
+    assert torch.isfinite(flat_map.grad).all()
+    with pytest.raises(ValueError, match="softness must be finite and > 0, got 0.0"):
+        soft_hair_share(a, zone, softness=0.0)
+    with pytest.raises(ValueError, match=r"got \(2, 3, 16, 16\) torch.float32 and \(8, 8\) torch.bool"):
+        soft_hair_share(a, zone[:8, :8])
+    with pytest.raises(ValueError, match="window must be odd and >= 1, got 2"):
+        soft_hair_share(a, zone, window=2)
+
+
+def test_beard_weight_holds_the_mean_hair_share_and_spreads_it_by_the_mean_square(tmp_path):
+    """Same seed, same steps: with the beard term G's mean hair share of the beard zone goes to its target, and a
+    higher mean-square target at the same mean spreads the samples apart (some hairless, some hairy) where a lower
+    one makes them alike. It needs its target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.data import beard_zone
+    from fitme_cli.reflectance.gan.metrics import soft_hair_share
+    from fitme_cli.reflectance.gan.train import _albedo_beard
+
+    data = _tiny_data()
+    regions = _two_regions()
+    alb = decode_maps(GanImages(data[:, :3], data[:, 3:4], data[:, 4:]), TINY).albedo
+    v = soft_hair_share(alb, beard_zone(16))
+    torch.testing.assert_close(_albedo_beard(data, regions), torch.stack([v, v.square()], 1))  # the regions not used
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def run(weight, mean_square):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, beard_weight=weight))
+        state.regions, state.beard_target = regions, torch.tensor([0.3, mean_square])
+        out = _seeded_steps(state, data, 60)
+        with torch.no_grad():
+            share = _albedo_beard(state.G(z).cat(), regions)[:, 0]
+        return float(share.mean()), float(share.var()), out
+
+    off, _, l_off = run(0.0, 0.09)
+    alike, var_alike, l_on = run(20.0, 0.09)  # 0.3^2: every sample the same
+    apart, var_apart, _ = run(20.0, 0.27)  # as if 30 % were all hair and the rest none
+    assert off > 0.5 and abs(alike - 0.3) < 0.05 and abs(apart - 0.3) < 0.06, (off, alike, apart)  # 0.62, 0.30, 0.27
+    assert var_apart > 2 * var_alike, (var_apart, var_alike)  # 0.069 against 0.025 measured
+    assert "beard_gap" not in l_off[0] and l_on[-1]["beard_gap"] > 0
+    _assert_region_term_refusals("beard", data, tmp_path)
+    assert TrainSettings(beard_weight=1.0, hairline_region=True).region_terms  # it counts as a per-region term
+
+
+def test_tone_weight_sets_the_spread_of_tones_between_samples(tmp_path):
+    """Same seed, same steps: with the tone term's mean target at the data's per-region mean albedo, a mean-square
+    target of the mean's square (no spread) narrows G's tones between samples below where training alone takes
+    them, and one of the mean's square plus 0.1^2 spreads them. It needs its target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.metrics import region_moments
+    from fitme_cli.reflectance.gan.train import _albedo_tone
+
+    data = _tiny_data()
+    regions = _two_regions()
+    alb = decode_maps(GanImages(data[:, :3], data[:, 3:4], data[:, 4:]), TINY).albedo
+    m = region_moments(alb, regions)[:, :, 0].flatten(1)  # (N, 2 regions * 3 channels)
+    torch.testing.assert_close(_albedo_tone(data, regions), torch.cat([m, m.square()], 1))
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    mean = m.mean(0)
+
+    def run(weight, spread):  # the spread of each entry between samples, averaged
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, tone_weight=weight))
+        state.regions, state.tone_target = regions, torch.cat([mean, mean.square() + spread**2])
+        out = _seeded_steps(state, data, 60)
+        with torch.no_grad():
+            return float(_albedo_tone(state.G(z).cat(), regions)[:, :6].std(0).mean()), out
+
+    off, l_off = run(0.0, 0.0)
+    narrow, l_on = run(2.0, 0.0)
+    wide, _ = run(2.0, 0.1)
+    assert narrow < 0.6 * off and wide > 2 * narrow, (off, narrow, wide)  # 0.075, 0.029, 0.085 measured
+    assert "tone_gap" not in l_off[0] and l_on[-1]["tone_gap"] > 0
+    _assert_region_term_refusals("tone", data, tmp_path)
+
+
 def test_beard_zone_holds_the_data_beards():
     """The card's beard measure (G's beards came and went while every mean held, docs/brdf_gan.md): the zone lies on
     the lower face, and the data's beards read as hair there, its shaven faces not."""

@@ -44,7 +44,8 @@ _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", 
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
-                "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
+                "beard_weight", "tone_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
+                "drift_on_ema")
 
 
 @click.command("train")
@@ -98,6 +99,14 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--colour-weight", type=click.FloatRange(min=0),
               help="Pull the running per-region mean and spread of each channel of G's albedo to the data's, against "
                    "regions of the wrong colour (not in the paper; may change on --resume). [0]")
+@click.option("--beard-weight", type=click.FloatRange(min=0),
+              help="Pull the running mean and mean square of each sample's hair share of the beard zone to the data's, "
+                   "against a thin beard on every face where the data has a full one on a few (not in the paper; may "
+                   "change on --resume). [0]")
+@click.option("--tone-weight", type=click.FloatRange(min=0),
+              help="Pull the running mean and mean square of each sample's per-region mean albedo to the data's: the "
+                   "spread of skin tones between samples, against a narrowed range of tones (not in the paper; may "
+                   "change on --resume). [0]")
 @click.option("--hairline-region/--no-hairline-region", default=None,
               help="The per-region terms also measure the data's hairline as a region of its own, against a soft "
                    "hairline (not in the paper; may change on --resume). [off]")
@@ -186,8 +195,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
                       "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
-                      "spectrum_weight", "relief_weight", "colour_weight", "hairline_region", "side_regions",
-                      "eye_region", "brow_edge_region", "drift_on_ema")
+                      "spectrum_weight", "relief_weight", "colour_weight", "beard_weight", "tone_weight", "hairline_region",
+                      "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:

@@ -9,6 +9,7 @@ G_ema, both Adam states, RNG state, counters; settings in its metadata), ``metri
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Callable
@@ -20,9 +21,10 @@ import torch
 import torch.nn.functional as F
 
 from .ada import augment
-from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET
+from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone
 from .latents import sample_z
-from .metrics import detail_link, region_band_energy, region_coherence, region_moments, region_relief, region_spectrum
+from .metrics import (detail_link, region_band_energy, region_coherence, region_moments, region_relief, region_spectrum,
+                      soft_hair_share)
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
@@ -33,7 +35,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
 # ``running_{term}`` in the state, and its measure in ``_region_measures``
-_REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour")
+_REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone")
 
 
 @dataclass(frozen=True)
@@ -116,6 +118,24 @@ class TrainSettings:
     # (docs/brdf_gan.md). Drift-style like the band term. 0: off (the paper)
     colour_weight: float = 0.0
     colour_beta: float = 0.99  # per-step decay of the running moments
+    # not in the paper: weight of a term that pulls the running mean and mean square of each sample's soft hair share
+    # of the beard zone (``metrics.soft_hair_share``, ``data.beard_zone``) to the data's. The data's beards are there
+    # or not: on the card's step measure, mean 0.18 and mean square 0.15, one face in six bearded. The other terms pull
+    # means over samples, which a thin beard on every face meets as well: at 172.00 kimg 6.8 % of G_ema's samples
+    # had a full beard, 151.01's 26.8 % (docs/brdf_gan.md). The mean square is what tells the two apart, and its
+    # gradient (2 v per sample) pushes the samples with more hair harder than those with less. Drift-style like the
+    # coherence term. The zone is the layout's, not a region label: it needs no region flag. 0: off (the paper)
+    beard_weight: float = 0.0
+    beard_beta: float = 0.99  # per-step decay of the running share moments
+    # not in the paper: weight of a term that pulls the running mean and mean square of each sample's per-region mean
+    # linear albedo, per channel, to the data's, each relative to its target: with the mean held, the mean square is
+    # the spread of skin tones between samples. The colour term pulls each region's mean over samples, which a narrow
+    # range of tones meets as well as the data's Monk scale. Between-sample spread of the skin's mean albedo, G_ema
+    # over data (192 latents): 1.00 at 172.00 kimg, 0.96, 0.95, 0.88 at 173.50, 174.50, 175.50 (--beard-weight 2,
+    # --g-lr 0.0005, --ema-kimg 0.5); the card's tone distance went 0.0094 -> 0.0183, the fairest tenth of skins
+    # missing (docs/brdf_gan.md). The same mechanism as the beard term. 0: off (the paper)
+    tone_weight: float = 0.0
+    tone_beta: float = 0.99  # per-step decay of the running tone moments
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -239,6 +259,14 @@ class TrainState:
     # colour term's target, and G's running ones; derived and saved like the link's
     colour_target: torch.Tensor | None = None
     running_colour: torch.Tensor | None = None
+    # (2,) float32: the data's mean soft beard hair share and its mean square (``_albedo_beard``), the beard term's
+    # target, and G's running ones; derived and saved like the link's
+    beard_target: torch.Tensor | None = None
+    running_beard: torch.Tensor | None = None
+    # (k * 2 * 3,) float32: the data's per-region mean linear albedo per channel and its mean square over samples
+    # (``_albedo_tone``), the tone term's target, and G's running ones; derived and saved like the link's
+    tone_target: torch.Tensor | None = None
+    running_tone: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -457,6 +485,27 @@ def colour_loss(colour: torch.Tensor, running: torch.Tensor, target: torch.Tenso
     return coherence_loss(colour / scale, running.to(colour) / scale, target.to(colour) / scale)
 
 
+@functools.lru_cache(maxsize=4)
+def _beard_zone(resolution: int) -> torch.Tensor:
+    return beard_zone(resolution)  # built from the shape model's layout: once per resolution, not every step
+
+
+def _albedo_beard(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2): per sample, the soft hair share of the linear albedo over the beard
+    zone (``metrics.soft_hair_share``, ``data.beard_zone``) and its square. ``regions`` is not used: the zone is
+    the layout's, whatever the region labels are."""
+    v = soft_hair_share(decode_albedo(x[:, :3]), _beard_zone(x.shape[-1]).to(x.device))
+    return torch.stack([v, v.square()], 1)
+
+
+def _albedo_tone(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * k * 3): each sample's mean linear albedo per region and channel
+    (``metrics.region_moments``; k * 3 entries), then their squares: averaged over samples, the tones' mean and,
+    with it, their spread."""
+    m = region_moments(decode_albedo(x[:, :3]), regions)[:, :, 0]  # (B, k, 3)
+    return torch.stack([m, m.square()], 1).flatten(1)
+
+
 def _relative_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean of |running / target - 1|: the band term's gap."""
     return float((running / target - 1).abs().mean())
@@ -485,15 +534,17 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
     """What each per-region drift term measures: name -> f(fake (B, 7, R, R), regions) -> (B, m). One table
     for ``train_step`` and ``warm_running``, so that a warm start measures what the term pulls."""
     return {"coherence": _albedo_coherence, "band": lambda x, regions: _albedo_bands(x, regions, t.band_levels),
-            "spectrum": _albedo_spectra, "relief": _albedo_relief, "colour": _albedo_colour}
+            "spectrum": _albedo_spectra, "relief": _albedo_relief, "colour": _albedo_colour, "beard": _albedo_beard,
+            "tone": _albedo_tone}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum: mean
-# TV distance of the spectra; colour: mean |running - target| / target (floored)
+# TV distance of the spectra; colour and tone: mean |running - target| / target (floored); beard: mean |running - target|
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
-                  "colour": (colour_loss, _colour_gap)}
+                  "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
+                  "tone": (colour_loss, _colour_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
@@ -502,7 +553,7 @@ def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | 
                  gap: Callable[[torch.Tensor, torch.Tensor], float],
                  tracked: Callable[[torch.Tensor], torch.Tensor] | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor | None, float | None]:
-    """One per-region drift term of ``train_step`` (coherence, band, spectrum, relief, colour): measure the fake
+    """One per-region drift term of ``train_step`` (``_REGION_TERMS``): measure the fake
     batch (``measure(regions)`` -> (B, m)), update the running mean (from ``tracked(regions)``, G_ema's batch, when
     given: ``TrainSettings.drift_on_ema``), and return (loss, running, gap); with weight 0 (zero loss, running
     unchanged, no gap)."""
