@@ -179,13 +179,13 @@ def _check_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int) -> 
         raise ValueError(f"window must be odd and >= 1, got {window}")
 
 
-def _local_log_std(albedo: torch.Tensor, window: int) -> torch.Tensor:
-    """(N, 3, R, R) linear albedo -> (N, R, R): the std of the log luminance over a ``window``^2 box (edges: the
-    box's texels inside the map). 1e-6 under the root keeps its gradient finite where the albedo is flat."""
+def _local_log_var(albedo: torch.Tensor, window: int) -> torch.Tensor:
+    """(N, 3, R, R) linear albedo -> (N, R, R): the variance (>= 0) of the log luminance over a ``window``^2 box
+    (edges: the box's texels inside the map)."""
     lum = albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
     mean = F.avg_pool2d(lum, window, 1, window // 2, count_include_pad=False)
     var = F.avg_pool2d(lum.square(), window, 1, window // 2, count_include_pad=False) - mean.square()
-    return (var.clamp_min(0) + 1e-6).sqrt()[:, 0]
+    return var.clamp_min(0)[:, 0]
 
 
 def hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int = 5, threshold: float = 0.12) -> torch.Tensor:
@@ -194,7 +194,7 @@ def hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int = 5, thresh
     against skin's pores and freckles (on the data's beard zone, shaven faces read below 0.05 and most bearded
     ones above 0.8). The log makes the threshold one contrast for every skin tone."""
     _check_hair_share(albedo, zone, window)
-    return (_local_log_std(albedo, window) > threshold)[:, zone].to(albedo.dtype).mean(1)
+    return (_local_log_var(albedo, window).sqrt() > threshold)[:, zone].to(albedo.dtype).mean(1)
 
 
 def soft_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int = 5, threshold: float = 0.12,
@@ -207,7 +207,8 @@ def soft_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int = 5, t
     _check_hair_share(albedo, zone, window)
     if not (softness > 0 and math.isfinite(softness)):
         raise ValueError(f"softness must be finite and > 0, got {softness}")
-    return torch.sigmoid((_local_log_std(albedo, window) - threshold) / softness)[:, zone].mean(1)
+    std = (_local_log_var(albedo, window) + 1e-6).sqrt()  # 1e-6: a finite gradient where the albedo is flat
+    return torch.sigmoid((std - threshold) / softness)[:, zone].mean(1)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

@@ -263,7 +263,7 @@ class TrainState:
     # target, and G's running ones; derived and saved like the link's
     beard_target: torch.Tensor | None = None
     running_beard: torch.Tensor | None = None
-    # (k * 2 * 3,) float32: the data's per-region mean linear albedo per channel and its mean square over samples
+    # (2 * k * 3,) float32: the data's per-region mean linear albedo per channel and its mean square over samples
     # (``_albedo_tone``), the tone term's target, and G's running ones; derived and saved like the link's
     tone_target: torch.Tensor | None = None
     running_tone: torch.Tensor | None = None
