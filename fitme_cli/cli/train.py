@@ -104,9 +104,9 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                    "against a thin beard on every face where the data has a full one on a few (not in the paper; may "
                    "change on --resume). [0]")
 @click.option("--tone-weight", type=click.FloatRange(min=0),
-              help="Pull the running mean and mean square of each sample's per-region mean albedo to the data's: the "
-                   "spread of skin tones between samples, against a narrowed range of tones (not in the paper; may "
-                   "change on --resume). [0]")
+              help="Pull the running mean of each sample's per-region mean albedo, and the running variance of it "
+                   "within each batch, to the data's (the eye openings left out): the spread of skin tones between "
+                   "samples, against a narrowed range of tones (not in the paper; may change on --resume). [0]")
 @click.option("--hairline-region/--no-hairline-region", default=None,
               help="The per-region terms also measure the data's hairline as a region of its own, against a soft "
                    "hairline (not in the paper; may change on --resume). [off]")

@@ -23,8 +23,8 @@ import torch.nn.functional as F
 from .ada import augment
 from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone
 from .latents import sample_z
-from .metrics import (detail_link, region_band_energy, region_coherence, region_moments, region_relief, region_spectrum,
-                      soft_hair_share)
+from .metrics import (detail_link, region_band_energy, region_coherence, region_labels, region_moments, region_relief,
+                      region_spectrum, soft_hair_share)
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
@@ -127,15 +127,16 @@ class TrainSettings:
     # coherence term. The zone is the layout's, not a region label: it needs no region flag. 0: off (the paper)
     beard_weight: float = 0.0
     beard_beta: float = 0.99  # per-step decay of the running share moments
-    # not in the paper: weight of a term that pulls the running mean and mean square of each sample's per-region mean
-    # linear albedo, per channel, to the data's, each relative to its target: with the mean held, the mean square is
-    # the spread of skin tones between samples. The colour term pulls each region's mean over samples, which a narrow
-    # range of tones meets as well as the data's Monk scale. Between-sample spread of the skin's mean albedo, G_ema
-    # over data (192 latents): 1.00 at 172.00 kimg, 0.96, 0.95, 0.88 at 173.50, 174.50, 175.50 (--beard-weight 2,
-    # --g-lr 0.0005, --ema-kimg 0.5); the card's tone distance went 0.0094 -> 0.0183, the fairest tenth of skins
-    # missing (docs/brdf_gan.md). The same mechanism as the beard term. 0: off (the paper)
+    # not in the paper: weight of a term that pulls the running mean of each sample's per-region mean linear albedo,
+    # per channel, and the running between-sample variance of it within each batch, to the data's, each relative to
+    # its target: the spread of skin tones between samples. The colour term pulls each region's mean over samples,
+    # which a narrow range of tones meets as well as the data's Monk scale. Between-sample spread of the skin's mean
+    # albedo, G_ema over data (192 latents): 1.00 at 172.00 kimg, 0.96, 0.95, 0.88 at 173.50, 174.50, 175.50
+    # (--beard-weight 2, --g-lr 0.0005, --ema-kimg 0.5); the card's tone distance went 0.0094 -> 0.0183, the fairest
+    # tenth of skins missing (docs/brdf_gan.md). The variance is taken within each batch, not as a running mean
+    # square, which G's swings of its mean tone between steps inflate (``_albedo_tone``). 0: off (the paper)
     tone_weight: float = 0.0
-    tone_beta: float = 0.99  # per-step decay of the running tone moments
+    tone_beta: float = 0.99  # per-step decay of the running tone means and variances
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -358,9 +359,12 @@ def update_running(running: torch.Tensor | None, moments: torch.Tensor, beta: fl
 
 
 def _data_mean(measure: Callable[[torch.Tensor], torch.Tensor], data: torch.Tensor, n: int, chunk: int) -> torch.Tensor:
-    """The mean over the first n data samples of ``measure`` ((B, 7, R, R) -> (B, ...)), in chunks."""
+    """The mean over the first n data samples of ``measure`` ((B, 7, R, R) -> (B, ...)), in chunks. A last chunk of one
+    sample joins the one before it: ``_albedo_tone`` measures each sample against its batch."""
+    n = min(n, len(data))
+    starts = [i for i in range(0, n, chunk) if i == 0 or n - i > 1]
     with torch.no_grad():
-        return torch.cat([measure(data[i : i + chunk].float()) for i in range(0, min(n, len(data)), chunk)]).mean(0)
+        return torch.cat([measure(data[i:j].float()) for i, j in zip(starts, starts[1:] + [n])]).mean(0)
 
 
 def data_link(data: torch.Tensor, mask: torch.Tensor | None = None, n: int = 512, chunk: int = 64) -> float:
@@ -499,11 +503,46 @@ def _albedo_beard(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
 
 
 def _albedo_tone(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
-    """(B, 7, R, R) network space -> (B, 2 * k * 3): each sample's mean linear albedo per region and channel
-    (``metrics.region_moments``; k * 3 entries), then their squares: averaged over samples, the tones' mean and,
-    with it, their spread."""
+    """(B, 7, R, R) network space, B >= 2 -> (B, 2 * k * 3): each sample's mean linear albedo per region and channel
+    (``metrics.region_moments``; k * 3 entries), then its squared deviation from the batch's mean times B / (B - 1):
+    averaged over the batch, the tones' mean and their unbiased variance between the batch's samples. The eye
+    openings' entries are 0.
+    Not the mean square (2026-11-28): averaged over ~100 training batches, a mean square counts the jumps of G's
+    mean tone between steps as spread. At 172.75 kimg the running estimate put the skin's spread at 0.96 of the
+    data's while G's own samples spread 0.80 of it (G's spread swings too, which no running mean removes:
+    docs/brdf_gan.md).
+    Not the eye openings: the data's hardly follow the skin's tone (their spread 0.06 against the skin's 0.16), and
+    G_ema's spread 2.8 times as much (172.75 kimg). In variance, that one small region's gap is ~5 times the skin's:
+    it would steer a term that is there for the skin's tones."""
+    b = x.shape[0]
+    if b < 2:
+        raise ValueError(f"_albedo_tone needs a batch of at least 2 samples for their spread, got {b}")
     m = region_moments(decode_albedo(x[:, :3]), regions)[:, :, 0]  # (B, k, 3)
-    return torch.stack([m, m.square()], 1).flatten(1)
+    labels = torch.tensor(region_labels(regions), device=x.device)
+    m = m * (labels % SIDE_OFFSET != EYE_LABEL).to(m)[None, :, None]
+    dev = (m - m.mean(0, keepdim=True)).square() * (b / (b - 1))
+    return torch.stack([m, dev], 1).flatten(1)
+
+
+def _tone_scale(target: torch.Tensor) -> torch.Tensor:
+    """(2 * k * 3,) ``_albedo_tone`` target -> (2 * k * 3,) the scale its loss and gap divide by: each mean by
+    itself (floored at ``_COLOUR_FLOOR``), as the colour term; every variance by the mean of the variances' targets.
+    Relative to their own targets, the smallest variances (the brows' and lips' blue, 0.009) would weigh 5 times the
+    skin's red (0.048) per unit of variance."""
+    mean, var = target.detach().view(2, -1)
+    return torch.cat([mean.clamp_min(_COLOUR_FLOOR), var.mean().clamp_min(_COLOUR_FLOOR**2).expand_as(var)])
+
+
+def tone_loss(tone: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """tone: (B, 2 * k * 3) of a fake batch (``_albedo_tone``), running and target (2 * k * 3,): ``coherence_loss``
+    of each entry over its ``_tone_scale``."""
+    scale = _tone_scale(target.to(tone))
+    return coherence_loss(tone / scale, running.to(tone) / scale, target.to(tone) / scale)
+
+
+def _tone_gap(running: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean of |running - target| / ``_tone_scale``: the tone term's gap."""
+    return float(((running - target).abs() / _tone_scale(target)).mean())
 
 
 def _relative_gap(running: torch.Tensor, target: torch.Tensor) -> float:
@@ -540,11 +579,12 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum: mean
-# TV distance of the spectra; colour and tone: mean |running - target| / target (floored); beard: mean |running - target|
+# TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the same over ``_tone_scale``;
+# beard: mean |running - target|
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
-                  "tone": (colour_loss, _colour_gap)}
+                  "tone": (tone_loss, _tone_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
@@ -712,6 +752,12 @@ def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.
 # the tensor running means a checkpoint holds (the link's is a float, in the metadata): the moment drift's and
 # each per-region term's, in ``_REGION_TERMS``' order
 _RUNNING = ("running_moments", *(f"running_{term}" for term in _REGION_TERMS))
+# what each running mean measures, where it has changed (absent: 1); saved beside them, and a checkpoint's running
+# mean of another version is dropped on load, for ``warm_running`` to start again. Tone 2 (2026-11-28): the second
+# half is the within-batch variance, no longer the mean square. Resumed with the old mean squares (2.5 times the
+# skin's variance) read as variances, the term pulled the std of G's skin red between samples from 1.04 of the
+# data's to 0.67 in 2-3 steps, and to 0.33 in 65
+_RUNNING_VERSIONS = {"running_tone": 2}
 _WARM_BATCHES = 16
 
 
@@ -781,7 +827,8 @@ def save_checkpoint(state: TrainState, path: Path) -> None:
     meta = {"gan": json.dumps(asdict(state.gan)), "train": json.dumps(asdict(state.train)),
             "counters": json.dumps({"step": state.step, "nimg": state.nimg, "ada_p": state.ada_p,
                                     "ada_acc": state.ada_acc, "ada_n": state.ada_n, "wall_time": state.wall_time,
-                                    "running_link": state.running_link})}
+                                    "running_link": state.running_link}),
+            "running_versions": json.dumps(_RUNNING_VERSIONS)}
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata=meta)
@@ -839,8 +886,10 @@ def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainStat
     torch.set_rng_state(tensors["rng.torch"])
     for k, v in json.loads(meta["counters"]).items():
         setattr(state, k, v)
+    versions = json.loads(meta.get("running_versions", "{}"))
     for k in _RUNNING:  # checkpoints from before 2026-11-27 have none (``train`` then calls ``warm_running``)
-        setattr(state, k, tensors.get(f"running.{k}"))
+        same = versions.get(k, 1) == _RUNNING_VERSIONS.get(k, 1)
+        setattr(state, k, tensors.get(f"running.{k}") if same else None)
     return state
 
 

@@ -1,0 +1,84 @@
+"""Quick checks of BRDF-GAN training snapshots, between the full cards (docs/brdf_gan.md): for each checkpoint, the
+skin's tone spread between samples and its quantiles, the skin and forehead's within-region albedo std and finest
+band, and the share of full beards, each against the first 512 training maps. Prints one line per checkpoint.
+
+    python benchmarks/gan_snapshots.py DATA_DIR CKPT... [--generator ema|g] [--latents 192]
+
+``fitme train`` overwrites ``RUN/checkpoint.safetensors`` at every snapshot; copy each aside to compare them.
+Measures (192 latents, seed 11, constant noise, against the data's first 512 maps; 3.7 min for the data and two
+256^2 checkpoints on 1 thread beside a training run, which it slows ~2-fold meanwhile):
+- tone spread: the std between samples of the skin's mean linear albedo (mean of r, g, b), G over data; its
+  10th / 50th / 90th percentiles beside the data's. The sampling error of the ratio is ~0.05.
+- skin+forehead std, band: the mean within-region std and finest Laplacian band RMS of the linear albedo, G over data.
+- beards: the share of samples whose beard zone is at least 0.6 and 0.3 hair (``metrics.hair_share``).
+A single snapshot of the training G swings (its detail by +-20 % between snapshots 0.25 kimg apart, 2026-11-27):
+compare G_ema, which ships, unless asking about the training G itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+_SKIN, _FOREHEAD = 1, 2  # shape.regions.REGIONS
+
+
+def _measure(albedo: torch.Tensor, regions: torch.Tensor, zone: torch.Tensor) -> dict[str, torch.Tensor]:
+    """albedo (N, 3, R, R) linear -> per sample: skin tone, skin+forehead std and finest band, beard hair share."""
+    from fitme_cli.reflectance.gan.metrics import hair_share, region_band_energy, region_labels, region_moments
+
+    labels = region_labels(regions)
+    face = [labels.index(_SKIN), labels.index(_FOREHEAD)]
+    moments = region_moments(albedo, regions)  # (N, k, 2, 3)
+    return {"tone": moments[:, labels.index(_SKIN), 0].mean(1), "std": moments[:, face, 1].mean((1, 2)),
+            "band": region_band_energy(albedo, regions, 1)[:, face, 0].mean((1, 2)), "hair": hair_share(albedo, zone)}
+
+
+def _quantiles(x: torch.Tensor) -> str:
+    return "/".join(f"{float(v):.3f}" for v in x.double().quantile(torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data_dir", type=Path)
+    ap.add_argument("checkpoints", type=Path, nargs="+")
+    ap.add_argument("--generator", choices=("ema", "g"), default="ema")
+    ap.add_argument("--latents", type=int, default=192)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    from fitme_cli.reflectance.gan.data import beard_zone, load_dataset, load_regions
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import load_checkpoint
+
+    data = ref = regions = zone = None
+    for path in args.checkpoints:
+        state = load_checkpoint(path)
+        G = state.G_ema if args.generator == "ema" else state.G
+        if ref is None:
+            r = state.gan.resolution
+            regions, zone = load_regions(r), beard_zone(r)
+            data = load_dataset(args.data_dir, state.gan, limit=512)
+            ref = _measure(torch.cat([decode_albedo(data[i : i + 64].float()[:, :3]) for i in range(0, len(data), 64)]),
+                           regions, zone)
+        z = torch.randn(args.latents, state.gan.z_dim, generator=torch.Generator().manual_seed(11))
+        with torch.no_grad():
+            albedo = torch.cat([decode_albedo(G(z[i : i + 32], noise_mode="const").cat()[:, :3])
+                                for i in range(0, len(z), 32)])
+        m = _measure(albedo, regions, zone)
+        print(f"{path.name} ({state.nimg / 1000:.2f} kimg, {args.generator}): "
+              f"tone spread {float(m['tone'].std() / ref['tone'].std()):.3f}, "
+              f"q10/50/90 {_quantiles(m['tone'])} (data {_quantiles(ref['tone'])}); "
+              f"skin+forehead std {float(m['std'].mean() / ref['std'].mean()):.3f}, "
+              f"band {float(m['band'].mean() / ref['band'].mean()):.3f}; "
+              f"beards >= 0.6 / 0.3: {float((m['hair'] >= 0.6).double().mean()):.3f} / "
+              f"{float((m['hair'] >= 0.3).double().mean()):.3f} "
+              f"(data {float((ref['hair'] >= 0.6).double().mean()):.3f} / {float((ref['hair'] >= 0.3).double().mean()):.3f})",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
