@@ -264,8 +264,8 @@ class TrainState:
     # target, and G's running ones; derived and saved like the link's
     beard_target: torch.Tensor | None = None
     running_beard: torch.Tensor | None = None
-    # (2 * k * 3,) float32: the data's per-region mean linear albedo per channel and its mean square over samples
-    # (``_albedo_tone``), the tone term's target, and G's running ones; derived and saved like the link's
+    # (2 * k * 3,) float32: the data's per-region mean linear albedo per channel and its variance between the samples
+    # of a batch (``_albedo_tone``), the tone term's target, and G's running ones; derived and saved like the link's
     tone_target: torch.Tensor | None = None
     running_tone: torch.Tensor | None = None
 
