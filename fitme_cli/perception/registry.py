@@ -90,7 +90,7 @@ MODELS: dict[str, ModelEntry] = {
         # Built after the perception nets: its mean face comes from FaceMesh on real photos.
         ModelEntry("shape_model", "head shape model: FaceMesh topology, GP identity basis, ARKit expressions",
                    lambda: package_file("mediapipe", "mediapipe", "tasks/python/vision/face_landmarker.py", "Apache-2.0"),
-                   _build_shape, 1, onnx=False),
+                   _build_shape, 2, onnx=False),  # 2: a basis independent of the BLAS thread count
     )
 }
 

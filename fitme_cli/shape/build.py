@@ -15,8 +15,9 @@ Steps (all deterministic):
    landmark bends the surface at FaceMesh's near-coincident landmarks into slivers (min angle 1.9
    degrees instead of 5.9). Every fine vertex is a fixed linear combination of the coarse ones (S).
 5. Identity basis: a Gaussian-process morphable model (Luthi et al. 2018) on the coarse mesh: a sum of
-   three Gaussian kernels (coarse/medium/fine scales) with left-right coupling, eigen-decomposed, lifted
-   to the fine mesh by S and re-orthonormalised there.
+   three Gaussian kernels (coarse/medium/fine scales) with left-right coupling, eigen-decomposed per
+   coordinate (so the basis does not depend on the BLAS thread count), lifted to the fine mesh by S and
+   re-orthonormalised there.
 """
 
 from __future__ import annotations
@@ -320,27 +321,70 @@ def _subdivide(tri: np.ndarray, n_vertices: int, pinned: int):
 # ---------------------------------------------------------------- GP basis
 
 
-def _gp_kernel(x: np.ndarray, s: ShapeBuildSettings) -> np.ndarray:
-    """(3N, 3N) covariance (mm²) of the displacement field: K(x, y) = k(x, y) I + rho k(x, R y) R with
-    R = diag(-1, 1, 1) and k a sum of isotropic Gaussians. For rho = 1 it is the covariance of the
-    symmetrised field f(x) + R f(Rx) of an independent GP f ~ GP(0, k I); for 0 <= rho <= 1 it mixes that
-    with an independent field, so it stays positive semi-definite. rho sets how symmetric faces are."""
-    n = len(x)
+def _gp_kernels(x: np.ndarray, s: ShapeBuildSettings) -> tuple[np.ndarray, np.ndarray]:
+    """The (N, N) covariances (mm²) of the displacement field's x coordinate and of its y (= z) coordinate.
+
+    The field's covariance is K(x, y) = k(x, y) I + rho k(x, R y) R with R = diag(-1, 1, 1) and k a sum
+    of isotropic Gaussians. For rho = 1 it is the covariance of the symmetrised field f(x) + R f(Rx) of an
+    independent GP f ~ GP(0, k I); for 0 <= rho <= 1 it mixes that with an independent field, so it stays
+    positive semi-definite. rho sets how symmetric faces are. K is block-diagonal over the coordinates,
+    and its y and z blocks are the same matrix."""
     d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
     xm = x * [-1.0, 1.0, 1.0]
     d2m = ((x[:, None, :] - xm[None, :, :]) ** 2).sum(-1)
     k = sum(sd**2 * np.exp(-d2 / (2 * ls**2)) for sd, ls in s.scales)
     km = sum(sd**2 * np.exp(-d2m / (2 * ls**2)) for sd, ls in s.scales)
-    K = np.zeros((n, 3, n, 3))
-    for c, sign in enumerate((-1.0, 1.0, 1.0)):
-        K[:, c, :, c] = k + s.symmetry * sign * km
-    return K.reshape(3 * n, 3 * n)
+    return k - s.symmetry * km, k + s.symmetry * km
+
+
+def _identity_basis(coarse: np.ndarray, S, s: ShapeBuildSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(basis (3 n_fine, k) orthonormal, its eigenvalues (k,) mm² descending, all 3N coarse eigenvalues).
+
+    Each coordinate is diagonalised on its own, and y and z share one computation. Diagonalising the
+    whole (3N, 3N) K made the basis depend on the BLAS thread count: every y eigenvalue equals a z one,
+    so eigh returned an arbitrary rotation of each y/z pair (1 thread against 2 differed by up to 2x the
+    basis's largest entry, 2026-11-28), and even two eigh calls on the y and z blocks in one process
+    differ in the last bits, which swapped y and z in the ranking. Now each basis vector moves one
+    coordinate, y/z ties are exact, and equal eigenvalues rank x, y, z."""
+    n = len(coarse)
+    blocks = [np.linalg.eigh(b) for b in _gp_kernels(coarse, s)]
+    lam_c = [blocks[0][0][::-1], blocks[1][0][::-1], blocks[1][0][::-1]]
+    all_lam = np.concatenate(lam_c)
+    chan = np.repeat(np.arange(3), n)
+    pick = np.lexsort((chan, -all_lam))[: s.components]  # by eigenvalue, then coordinate
+    n_kept = [int(np.sum(chan[pick] == c)) for c in range(3)]
+    n_fine = S.shape[0]
+    vecs, vals, chans = [], [], []
+    # lift each block's kept components to the fine mesh and re-orthonormalise there; y and z keep the
+    # same (larger) set and are truncated by fine eigenvalue below, so their fine eigenpairs are the same
+    for (lam, u), m, coords in ((blocks[0], n_kept[0], (0,)), (blocks[1], max(n_kept[1:]), (1, 2))):
+        if m == 0:
+            continue
+        lam, u = lam[::-1][:m], u[:, ::-1][:, :m]
+        q, r = np.linalg.qr(S @ (u * np.sqrt(lam)))  # the fine covariance's square root
+        lam_f, rot = np.linalg.eigh(r @ r.T)
+        fine = q @ rot
+        for c in coords:
+            v = np.zeros((n_fine, 3, m))
+            v[:, c, :] = fine
+            vecs.append(v.reshape(3 * n_fine, m))
+            vals.append(lam_f)
+            chans.append(np.full(m, c))
+    vecs, vals, chans = np.concatenate(vecs, 1), np.concatenate(vals), np.concatenate(chans)
+    order = np.lexsort((chans, -vals))[: s.components]
+    return _fix_signs(vecs[:, order]), vals[order], np.sort(all_lam)[::-1]
 
 
 def _fix_signs(u: np.ndarray) -> np.ndarray:
-    """Deterministic eigenvector signs: the largest-magnitude entry of each column is positive."""
-    idx = np.argmax(np.abs(u), axis=0)
-    return u * np.sign(u[idx, np.arange(u.shape[1])])
+    """Deterministic eigenvector signs: each column's dot product with the ramp 1..M is positive.
+
+    Not the sign of the largest entry: on the mirror-symmetric head, a symmetric or antisymmetric vector
+    has its largest magnitude at a mirror pair of vertices, and which of the two argmax picks flipped
+    with the BLAS thread count. The ramp follows the vertex order, which is not mirror-symmetric."""
+    d = np.arange(1, len(u) + 1, dtype=np.float64) @ u
+    if np.any(np.abs(d) < 1e-6 * np.abs(u).sum(0) * len(u)):
+        raise ModelBuildError("an identity basis vector is orthogonal to the sign-fixing ramp")
+    return u * np.sign(d)
 
 
 # ---------------------------------------------------------------- UVs
@@ -436,19 +480,9 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
     if gap > 0.5:
         mean = mean + close * ((gap - 0.5) / (gap + 2.0))
     # identity basis
-    K = _gp_kernel(coarse, s)
-    lam, u = np.linalg.eigh(K)
-    order = np.argsort(lam)[::-1]
-    lam, u = lam[order], u[:, order]
+    basis, eig, lam = _identity_basis(coarse, S, s)
     total = float(lam.sum())
     k = s.components
-    S3 = sp.kron(S, sp.identity(3), format="csr")
-    lifted = S3 @ (u[:, :k] * np.sqrt(lam[:k]))  # (3n, k): the fine covariance's square root
-    q, r = np.linalg.qr(lifted)
-    lam_f, rot = np.linalg.eigh(r @ r.T)
-    order = np.argsort(lam_f)[::-1]
-    basis = _fix_signs(q @ rot[:, order])
-    eig = lam_f[order]
     uv, uv_faces = _cylindrical_uvs(mean, fine_tri, float(mean[:, 2].min() + (mean[:, 2].max() - mean[:, 2].min()) / 2))
     # expressions, correspondences, regions
     from ..perception.facemesh import IBUG68_FROM_FACEMESH
@@ -480,6 +514,9 @@ def build(out_dir: Path, settings: ShapeBuildSettings = ShapeBuildSettings()) ->
 
     from ..io.atomic import atomic_write_bytes
 
+    # safetensors.numpy writes an array's buffer as if it were C-ordered: a Fortran-ordered one (as LAPACK
+    # returns) would be stored transposed in memory order
+    tensors = {name: np.ascontiguousarray(a) for name, a in tensors.items()}
     atomic_write_bytes(Path(out_dir) / f"{NAME}.safetensors", save(tensors))
     ipd = float(np.linalg.norm(mean[le].mean(0) - mean[re_].mean(0)))
     min_angle = _min_angle(mean, fine_tri)

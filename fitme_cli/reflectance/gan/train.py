@@ -485,8 +485,18 @@ def colour_loss(colour: torch.Tensor, running: torch.Tensor, target: torch.Tenso
     """colour: (B, m) of a fake batch (``_albedo_colour``), running and target (m,): ``coherence_loss`` of each
     entry relative to its target (floored at ``_COLOUR_FLOOR``), as ``band_loss``: the regions' means and
     spreads span an order of magnitude between the scalp's blue spread and the skin's red."""
-    scale = target.to(colour).detach().clamp_min(_COLOUR_FLOOR)
-    return coherence_loss(colour / scale, running.to(colour) / scale, target.to(colour) / scale)
+    return _scaled_loss(colour, running, target, target.detach().clamp_min(_COLOUR_FLOOR))
+
+
+def _scaled_loss(stat: torch.Tensor, running: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``coherence_loss`` of stat (B, m), running and target (m,), each entry divided by scale (m,)."""
+    scale = scale.to(stat)
+    return coherence_loss(stat / scale, running.to(stat) / scale, target.to(stat) / scale)
+
+
+def _scaled_gap(running: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> float:
+    """Mean of |running - target| / scale: a term's gap in the units its loss uses."""
+    return float(((running - target).abs() / scale).mean())
 
 
 @functools.lru_cache(maxsize=4)
@@ -536,13 +546,12 @@ def _tone_scale(target: torch.Tensor) -> torch.Tensor:
 def tone_loss(tone: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """tone: (B, 2 * k * 3) of a fake batch (``_albedo_tone``), running and target (2 * k * 3,): ``coherence_loss``
     of each entry over its ``_tone_scale``."""
-    scale = _tone_scale(target.to(tone))
-    return coherence_loss(tone / scale, running.to(tone) / scale, target.to(tone) / scale)
+    return _scaled_loss(tone, running, target, _tone_scale(target))
 
 
 def _tone_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean of |running - target| / ``_tone_scale``: the tone term's gap."""
-    return float(((running - target).abs() / _tone_scale(target)).mean())
+    return _scaled_gap(running, target, _tone_scale(target))
 
 
 def _relative_gap(running: torch.Tensor, target: torch.Tensor) -> float:
@@ -552,7 +561,7 @@ def _relative_gap(running: torch.Tensor, target: torch.Tensor) -> float:
 
 def _colour_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean of |running - target| / max(target, ``_COLOUR_FLOOR``): the colour term's gap."""
-    return float(((running - target).abs() / target.clamp_min(_COLOUR_FLOOR)).mean())
+    return _scaled_gap(running, target, target.clamp_min(_COLOUR_FLOOR))
 
 
 def set_branch_noise(state: TrainState, strength: float) -> None:
