@@ -310,6 +310,18 @@ def test_ada_augment():
     assert not torch.allclose(srt(colour[:, :4]), srt(x.detach()[:, :4]))  # on by default, it changes values
 
 
+def test_ada_flip_mirrors_half_the_samples_even_at_p_1():
+    # N_x = 1 everywhere: a flipped sample's is -1 (shifts do not change a constant). Drawn with p alone, p = 1
+    # flipped all 400 samples, and D saw one orientation only
+    x = torch.zeros(400, 7, 16, 16)
+    x[:, 4] = 1
+    for p, expected in ((1.0, 200), (0.5, 100)):
+        y = augment(x, p, torch.Generator().manual_seed(1), color=False)
+        flipped = int((y[:, 4] == -1).all((1, 2)).sum())
+        assert abs(flipped - expected) < 40, (p, flipped)
+        assert int((y[:, 4] == 1).all((1, 2)).sum()) == 400 - flipped
+
+
 # --- training -------------------------------------------------------------------------------------------
 
 

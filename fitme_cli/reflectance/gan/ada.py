@@ -2,7 +2,7 @@
 sense for UV reflectance maps: x-flip (mirrors the symmetric layout; normals' x flips sign), integer
 translation, and brightness / contrast / saturation of the albedos (``color=False`` leaves them out).
 Each is applied per sample with probability p, identically to real and generated maps, and is
-differentiable.
+differentiable; an applied flip mirrors half the samples (a fair coin), so p = 1 still augments.
 """
 
 from __future__ import annotations
@@ -26,7 +26,9 @@ def augment(x: torch.Tensor, p: float, generator: torch.Generator | None = None,
     def on(prob):
         return (draw(b) < prob).to(x.dtype).view(b, 1, 1, 1)
 
-    flip = on(p)
+    # applied with probability p, then a fair coin, as StyleGAN2-ADA's xflip: a flip drawn with p alone flipped every
+    # sample at p = 1 (where the committed run's ADA sits from 159 kimg on), which is no augmentation (2026-11-28)
+    flip = on(p) * (draw(b) < 0.5).to(x.dtype).view(b, 1, 1, 1)
     flipped = x.flip(3) * torch.tensor([1, 1, 1, 1, -1, 1, 1], dtype=x.dtype, device=dev).view(1, 7, 1, 1)
     x = flip * flipped + (1 - flip) * x
 
