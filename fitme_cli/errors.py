@@ -22,6 +22,7 @@ __all__ = [
     "AvatarInvalid",
     "DifferentPeople",
     "DeviceUnavailable",
+    "ModelMismatch",
 ]
 
 
@@ -111,3 +112,10 @@ class DeviceUnavailable(FitmeError):
     """--device names a device this torch build or machine does not have."""
 
     exit_code = 25
+
+
+class ModelMismatch(AvatarInvalid):
+    """An avatar whose parameters mean another face under the models now in ``models/`` (a rebuilt shape
+    model, another generator): reading it on would silently give a different head."""
+
+    exit_code = 26

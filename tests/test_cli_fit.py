@@ -33,7 +33,7 @@ def test_fit_writes_the_documented_avatar_directory(avatar):
 
     out, output = avatar
     rep = json.loads((out / "avatar.json").read_text())
-    assert rep["schema"] == "1.1" and rep["settings"]["preset"] == "fast"
+    assert rep["schema"] == "1.2" and rep["settings"]["preset"] == "fast"
     (inp,) = rep["inputs"]
     assert len(inp["sha256"]) == 64 and inp["name"] == "astronaut" and inp["size"] == [512, 512]
     q = inp["quality"]
@@ -48,6 +48,7 @@ def test_fit_writes_the_documented_avatar_directory(avatar):
     params = load_file(str(out / "params.safetensors"))
     assert params["ws"].ndim == 3 and params["camera_rotation"].shape == (1, 3, 3) and params["p_e"].shape[0] == 1
     assert params["photo_crop"].shape == (1, 128, 128, 3)
+    assert params["fitted_vertices"].shape[0] == 1 and params["fitted_vertices"].shape[2] == 3
     from fitme_cli.fitting.invert import InversionSettings
 
     assert params["noise_gain"].tolist() == [InversionSettings().noise_gain]  # what the maps were made with
@@ -121,6 +122,24 @@ def test_tune_continues_on_the_avatar(avatar, tmp_path):
     (out / "params.safetensors").write_bytes(b"garbage")
     r = CliRunner().invoke(main, ["tune", str(out)])
     assert r.exit_code == 23 and "unreadable" in r.output
+
+
+def test_tune_refuses_an_avatar_whose_w_another_generator_would_turn_into_other_maps(avatar, tmp_path):
+    import shutil
+
+    from fitme_cli.io.maps import read_map, write_map
+
+    src, _ = avatar
+    out = tmp_path / "copy"
+    shutil.copytree(src, out)
+    # what models/brdf_gan.safetensors being replaced looks like from inside: W no longer makes these maps
+    path = out / "maps" / "avatar_albedo.exr"
+    write_map(path, (read_map(path).linear * 0.97).astype(np.float32), "exr16")
+    before = (out / "params.safetensors").read_bytes()
+    r = CliRunner().invoke(main, ["tune", str(out), "--iterations", "1", "--threads", "2"])
+    assert r.exit_code == 26, r.output  # ModelMismatch
+    assert "not the generator this avatar was fitted with" in r.output and "Traceback" not in r.output
+    assert (out / "params.safetensors").read_bytes() == before  # untouched
 
 
 def test_fit_is_deterministic_with_a_seed(photos, tmp_path):

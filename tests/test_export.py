@@ -342,6 +342,45 @@ def test_cli_export_bad_avatar_directories(avatar, tmp_path, case):
     assert not (tmp_path / "out").exists()
 
 
+def test_export_refuses_an_avatar_fitted_under_another_shape_model(avatar, shape_model, tmp_path):
+    """A rebuilt basis gives the fitted coefficients another face: refused, not exported silently."""
+    import copy
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    from fitme_cli.errors import ModelMismatch
+    from fitme_cli.export.pipeline import ExportSettings, export_avatar
+    from fitme_cli.fitting.avatar import SHAPE_TOLERANCE_MM, check_shape_model, load_avatar
+
+    av = load_avatar(avatar)
+    inv = av.inversion
+    assert check_shape_model(avatar, inv.p_s, inv.p_e, av.fitted_vertices, shape_model) < 1e-3
+    other = copy.deepcopy(shape_model)
+    k = int(inv.p_s.abs().argmax())
+    other.identity_basis[:, :, k] *= -1  # a sign flip, as an eigensolver on another BLAS may give
+    with pytest.raises(ModelMismatch, match="mm away") as e:
+        export_avatar(avatar, tmp_path / "out", ExportSettings(resolution=256), other)
+    assert e.value.exit_code == 26 and not (tmp_path / "out").exists()
+    tiny = copy.deepcopy(shape_model)
+    tiny.mean += 0.2 * SHAPE_TOLERANCE_MM  # far above float noise, far below a changed face: passes
+    assert 0.3 * SHAPE_TOLERANCE_MM < check_shape_model(avatar, inv.p_s, inv.p_e, av.fitted_vertices, tiny) < SHAPE_TOLERANCE_MM
+    # an avatar from before params.fitted_vertices (schema 1.1) is checked against its per-photo OBJs
+    old = tmp_path / "old"
+    shutil.copytree(avatar, old)
+    params = load_file(str(old / "params.safetensors"))
+    del params["fitted_vertices"]
+    save_file(params, str(old / "params.safetensors"))
+    fallback = load_avatar(old).fitted_vertices
+    assert (fallback - av.fitted_vertices).abs().max() < 1e-3  # the OBJ keeps 4 decimals of mm
+    with pytest.raises(ModelMismatch, match="mm away"):
+        check_shape_model(old, inv.p_s, inv.p_e, fallback, other)
+    # with neither, nothing to check against: refused with the way out
+    shutil.rmtree(old / "photos")
+    r = CliRunner().invoke(main, ["export", str(old), "-o", str(tmp_path / "out2"), "--resolution", "256"])
+    assert r.exit_code == 26 and "records no fitted mesh" in r.output and "fitme fit" in r.output
+
+
 def test_cli_export_bad_output_paths(avatar, tmp_path):
     r = CliRunner().invoke(main, ["export", str(avatar), "-o", str(avatar / "export"), "--resolution", "256"])
     assert r.exit_code == 17 and "inside the avatar directory" in r.output

@@ -44,6 +44,7 @@ def command(avatar_dir: Path, out_path: Path, envs: str, lights: tuple[str, ...]
     from ..export.pipeline import check_output_file
     from ..export.render import SheetSettings, parse_environments, parse_expression, parse_light, render_sheet
     from ..export.source import load_source
+    from ..fitting.avatar import check_shape_model
     from ..io.atomic import atomic_write_image
     from ..perception.registry import ensure_models
     from ..shape.model import load_shape_model
@@ -64,6 +65,7 @@ def command(avatar_dir: Path, out_path: Path, envs: str, lights: tuple[str, ...]
     source = load_source(avatar_dir)
     check_output_file(out_path, avatar_dir, force)
     sm = load_shape_model(ensure_models(["shape_model"]))
+    check_shape_model(avatar_dir, source.p_s, source.p_e, source.fitted_vertices, sm)
     try:
         weights = parse_expression(expression, sm.expression_names, source.p_e[0])
     except ValueError as e:

@@ -33,7 +33,7 @@ def command(avatar_dir: Path, iterations: int, device: str, threads: int | None)
     import torch
 
     from ..errors import AvatarInvalid, DeviceUnavailable
-    from ..fitting.avatar import load_avatar, publish_dir, staging_dir
+    from ..fitting.avatar import check_generator, check_shape_model, load_avatar, publish_dir, staging_dir
     from ..fitting.invert import TuningSettings, tune
     from ..fitting.outputs import write_avatar
     from ..perception.dlib_resnet import load_dlib_resnet
@@ -62,8 +62,15 @@ def command(avatar_dir: Path, iterations: int, device: str, threads: int | None)
         if unknown:
             raise AvatarInvalid(f"tuned layers do not fit the shipped generator: {', '.join(unknown[:3])}", avatar_dir)
         G.load_state_dict(av.tuned, strict=False)
+        with torch.no_grad():
+            held = decode_maps(G.synthesis(av.inversion.ws, noise_mode="const", noise_gain=av.inversion.noise_gain), G.settings)
+    else:
+        held = inverted
+    check_generator(avatar_dir, held.albedo)  # W means another texture under another BRDF-GAN
     G = G.to(dev)
-    sm = load_shape_model(models).to(dev)
+    sm = load_shape_model(models)
+    check_shape_model(avatar_dir, av.inversion.p_s, av.inversion.p_e, av.fitted_vertices, sm)
+    sm = sm.to(dev)
     desc = load_dlib_resnet(models).to(dev)
     topo = read_facemesh_topology()
     jaw = np.unique(topo.contours["face_oval"])

@@ -130,6 +130,7 @@ def export_avatar(avatar_dir: Path, out_dir: Path, settings: ExportSettings = Ex
     ``models/``'s, built on first use). Errors: AvatarInvalid, OutputNotWritable, ModelMissing."""
     from ..io.atomic import publish_file
     from ..io.maps import write_map
+    from ..fitting.avatar import check_shape_model
     from ..shape.model import load_shape_model
     from .gltf import TEXTURE_SLOTS, glb_bytes, gltf_document
     from .maps import MAP_NAMES, encode_png, exr_arrays, prepare_maps
@@ -151,11 +152,7 @@ def export_avatar(avatar_dir: Path, out_dir: Path, settings: ExportSettings = Ex
     t = time.perf_counter()
     fitted = settings.expression == "fitted"
     weights = src.p_e[0] if fitted else None
-    if src.p_s.shape[0] != shape_model.n_identity or src.p_e.shape[1] != shape_model.n_expressions:
-        from ..errors import AvatarInvalid
-
-        raise AvatarInvalid(f"params have {src.p_s.shape[0]} identity and {src.p_e.shape[1]} expression coefficients; "
-                            f"the shape model has {shape_model.n_identity} and {shape_model.n_expressions}", avatar_dir)
+    check_shape_model(avatar_dir, src.p_s, src.p_e, src.fitted_vertices, shape_model)
     topo = head_topology(shape_model, settings.mesh)
     mesh = build_export_mesh(shape_model, src.p_s, weights, settings.mesh, topo)
     seconds["mesh"] = time.perf_counter() - t

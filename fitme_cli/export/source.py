@@ -22,7 +22,8 @@ __all__ = ["AvatarSource", "load_source"]
 class AvatarSource:
     """path: the avatar directory; p_s: (K,) identity coefficients; p_e: (P, E) fitted expression per
     photo; photo_names: (P,); lights: the fitted ``render.Lights`` (batch P, world frame); effects: the
-    effects the fit chose; maps: the reflectance maps at the generator's resolution."""
+    effects the fit chose; maps: the reflectance maps at the generator's resolution; fitted_vertices:
+    (P, V, 3) float32 mm or None, the fitted meshes, for ``fitting.avatar.check_shape_model``."""
 
     path: Path
     p_s: np.ndarray
@@ -31,6 +32,7 @@ class AvatarSource:
     lights: object
     effects: object
     maps: SourceMaps
+    fitted_vertices: np.ndarray | None
 
 
 def load_source(avatar_dir: Path) -> AvatarSource:
@@ -62,4 +64,5 @@ def load_source(avatar_dir: Path) -> AvatarSource:
     if not (np.isfinite(p_s).all() and np.isfinite(p_e).all()):
         raise AvatarInvalid("params.safetensors holds non-finite shape or expression coefficients", avatar_dir)
     return AvatarSource(avatar_dir, p_s.astype(np.float64), p_e.astype(np.float64), [r_.name for r_ in av.records],
-                        inv.lights, inv.effects, maps)
+                        inv.lights, inv.effects, maps,
+                        None if av.fitted_vertices is None else av.fitted_vertices.numpy())

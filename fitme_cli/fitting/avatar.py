@@ -31,15 +31,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import AvatarInvalid, OutputNotWritable
+from ..errors import AvatarInvalid, ModelMismatch, OutputNotWritable
 from ..reflectance.maps import ReflectanceMaps
 from ..render import Camera, Effects, Lights
 from .invert import InversionResult, PhotoInput
 
-__all__ = ["SCHEMA_VERSION", "PhotoRecord", "Avatar", "check_output_dir", "staging_dir",
-           "publish_dir", "save_params", "load_avatar"]
+__all__ = ["SCHEMA_VERSION", "SHAPE_TOLERANCE_MM", "MAPS_TOLERANCE", "PhotoRecord", "Avatar", "check_output_dir",
+           "staging_dir", "publish_dir", "save_params", "load_avatar", "read_fitted_vertices", "check_shape_model",
+           "check_generator"]
 
-SCHEMA_VERSION = "1.1"  # 1.1: params.noise_gain
+SCHEMA_VERSION = "1.2"  # 1.1: params.noise_gain; 1.2: params.fitted_vertices
+# The same shape model rebuilt on another BLAS differs by ~1e-12 mm, a float32 fit on another device by
+# ~1e-4 mm; a changed basis (converter 1 -> 2) moves a fitted face by millimetres.
+SHAPE_TOLERANCE_MM = 0.05
+# Mean |difference| of the albedo regenerated from W and the one the avatar holds: 2e-5 for the same
+# generator (half-float EXR); 0.002 after dropping 3 tuning iterations; 0.019 for a G 26 kimg apart.
+MAPS_TOLERANCE = 0.001
 
 
 @dataclass(frozen=True)
@@ -58,7 +65,8 @@ class PhotoRecord:
 class Avatar:
     """A loaded avatar directory. ``report``: avatar.json as written; ``photos``: the prepared crops;
     ``inversion``: the fitted parameters (history from avatar.json); ``tuned``: the tuned generator layers
-    (empty when not tuned)."""
+    (empty when not tuned); ``fitted_vertices``: (P, V, 3) float32 mm, shape-model frame, the meshes the fit
+    made (None when the avatar records none), for ``check_shape_model``."""
 
     path: Path
     report: dict
@@ -66,6 +74,7 @@ class Avatar:
     photos: list[PhotoInput]
     inversion: InversionResult
     tuned: dict[str, torch.Tensor]
+    fitted_vertices: torch.Tensor | None
 
 
 def check_output_dir(out_dir: Path, inputs: list[Path], force: bool) -> None:
@@ -136,8 +145,9 @@ def _umask() -> int:
     return mask
 
 
-def save_params(path: Path, inv: InversionResult, photos: list[PhotoInput]) -> None:
-    """params.safetensors: the fitted parameters (crop-pixel cameras) and the prepared photos."""
+def save_params(path: Path, inv: InversionResult, photos: list[PhotoInput], vertices: torch.Tensor) -> None:
+    """params.safetensors: the fitted parameters (crop-pixel cameras), the prepared photos, and
+    ``vertices``: (P, V, 3) mm, the shape model's meshes for p_s and each photo's p_e."""
     from safetensors.torch import save_file
 
     c, li = inv.cameras, inv.lights
@@ -154,6 +164,7 @@ def save_params(path: Path, inv: InversionResult, photos: list[PhotoInput]) -> N
     if li.sh is not None:
         t["light_sh"] = li.sh
     t["noise_gain"] = torch.tensor([inv.noise_gain], dtype=torch.float64)
+    t["fitted_vertices"] = vertices.float()
     save_file({k: v.detach().cpu().contiguous() for k, v in t.items()}, str(path))
 
 
@@ -205,4 +216,80 @@ def load_avatar(path: Path) -> Avatar:
     inv = InversionResult(t["ws"], t["p_s"], t["p_e"], cam, lights, empty, history, effects, None,
                           report.get("effects", {}).get("coarse_residuals", {}),
                           float(t["noise_gain"][0]) if "noise_gain" in t else 1.0)  # avatars before it: full noise
-    return Avatar(path, report, records, photos, inv, tuned)
+    fitted = t.get("fitted_vertices")
+    if fitted is None:  # schema < 1.2: the per-photo OBJs hold the same meshes in camera frames
+        fitted = read_fitted_vertices(path, [r.name for r in records], cam.rotation, cam.translation)
+    return Avatar(path, report, records, photos, inv, tuned, fitted)
+
+
+def read_fitted_vertices(path: Path, names: list[str], rotation: torch.Tensor,
+                         translation: torch.Tensor) -> torch.Tensor | None:
+    """(P, V, 3) float32 mm, shape-model frame, from photos/NAME/mesh_camera.obj (camera frame, 4 decimals)
+    and the fitted world-to-camera ``rotation`` (P, 3, 3) and ``translation`` (P, 3); None when any is
+    missing or unreadable."""
+    meshes = []
+    for i, name in enumerate(names):
+        try:
+            with open(path / "photos" / name / "mesh_camera.obj") as f:
+                v = np.array([line.split()[1:4] for line in f if line.startswith("v ")], dtype=np.float64)
+        except (OSError, ValueError, UnicodeDecodeError):
+            return None
+        if v.ndim != 2 or v.shape[1] != 3 or (meshes and v.shape != meshes[0].shape):
+            return None
+        r, t = rotation[i].double().numpy(), translation[i].double().numpy()
+        meshes.append((v - t) @ r)  # camera = R world + t
+    return torch.from_numpy(np.stack(meshes)).float()
+
+
+def check_shape_model(path: Path, p_s, p_e, fitted_vertices, shape_model) -> float:
+    """Refuse an avatar that the shape model in use no longer turns into the face that was fitted.
+
+    ``p_s``: (K,) or (1, K); ``p_e``: (P, E) (tensors or arrays); ``fitted_vertices``: (P, V, 3) mm or None
+    (an avatar recording no mesh). Returns the largest vertex shift in mm; raises ModelMismatch when it
+    exceeds SHAPE_TOLERANCE_MM or the coefficient counts differ."""
+    sm = shape_model
+    p_s = torch.as_tensor(p_s).detach().cpu().float().reshape(1, -1)
+    p_e = torch.as_tensor(p_e).detach().cpu().float()
+    p_e = p_e.reshape(-1, p_e.shape[-1])
+    if p_s.shape[1] != sm.n_identity or p_e.shape[1] != sm.n_expressions:
+        raise ModelMismatch(f"params have {p_s.shape[1]} identity and {p_e.shape[1]} expression coefficients; the "
+                            f"shape model has {sm.n_identity} and {sm.n_expressions}: refit the photos with fitme fit", path)
+    if fitted_vertices is None:
+        raise ModelMismatch("the avatar records no fitted mesh (params.fitted_vertices or photos/*/mesh_camera.obj), "
+                            "so it cannot be checked against the shape model in models/: refit the photos with fitme fit", path)
+    ref = torch.as_tensor(fitted_vertices).float()
+    with torch.no_grad():
+        dev = sm.mean.device
+        v = sm.vertices(p_s.to(dev).expand(p_e.shape[0], -1), p_e.to(dev)).float().cpu()
+    if v.shape != ref.shape:
+        raise ModelMismatch(f"fitted meshes of shape {tuple(ref.shape)}, the shape model makes {tuple(v.shape)}: "
+                            "refit the photos with fitme fit", path)
+    shift = float((v - ref).norm(dim=-1).max())
+    if not shift <= SHAPE_TOLERANCE_MM:
+        raise ModelMismatch(f"models/shape_model is not the shape model this avatar was fitted with: its coefficients "
+                            f"now give a face up to {shift:.2f} mm away (tolerance {SHAPE_TOLERANCE_MM} mm); "
+                            "refit the photos with fitme fit", path)
+    return shift
+
+
+def check_generator(path: Path, albedo: torch.Tensor) -> float:
+    """Refuse an avatar whose W no longer makes its maps under the generator in use (another BRDF-GAN).
+
+    ``albedo``: (1, 3, R, R) linear [0, 1], regenerated from the avatar's W (and tuned layers); compared
+    with maps/avatar_albedo.exr. Returns the mean |difference|; raises ModelMismatch above MAPS_TOLERANCE."""
+    from ..errors import FitmeError
+    from ..io.maps import read_map
+
+    try:
+        held = torch.from_numpy(np.ascontiguousarray(read_map(path / "maps" / "avatar_albedo.exr").linear)).permute(2, 0, 1)
+    except FitmeError as e:
+        raise AvatarInvalid(f"maps/avatar_albedo.exr is unreadable: {e.message}", path) from None
+    now = albedo.detach().float().cpu()[0]
+    if now.shape != held.shape:
+        raise ModelMismatch(f"the avatar's maps are {tuple(held.shape)}, the generator in models/ makes {tuple(now.shape)}: "
+                            "refit the photos with fitme fit", path)
+    gap = float((now - held).abs().mean())
+    if not gap <= MAPS_TOLERANCE:
+        raise ModelMismatch(f"models/brdf_gan is not the generator this avatar was fitted with: its W now makes an albedo "
+                            f"{gap:.3f} away on average (tolerance {MAPS_TOLERANCE}); refit the photos with fitme fit", path)
+    return gap
