@@ -822,6 +822,46 @@ def test_relief_weight_moves_the_fakes_relief(tmp_path):
     assert TrainSettings(relief_weight=1.0, side_regions=True).region_terms  # the relief term counts as one
 
 
+def test_mean_map_weight_pulls_a_patch_of_the_mean_maps(tmp_path):
+    """The mean-map term: its measure is the maps blurred (a constant stays, an impulse keeps its sum), and with it
+    G's mean albedo in one patch moves toward a target raised there, the rest of the map held; without it the patch
+    does not move so; it needs its target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _mean_map
+
+    data = _tiny_data()
+    regions = _two_regions()
+    flat = torch.full((2, 7, 16, 16), 0.3)
+    torch.testing.assert_close(_mean_map(flat, regions), flat.flatten(1))
+    impulse = torch.zeros(1, 7, 16, 16)
+    impulse[0, 2, 8, 8] = 1.0
+    m = _mean_map(impulse, regions).view(7, 16, 16)
+    assert float(m.sum()) == pytest.approx(1.0, abs=1e-5) and float(m[2, 8, 8]) == pytest.approx(
+        (1 / sum(math.exp(-t * t / 2) for t in range(-3, 4))) ** 2, rel=1e-5)  # the radius-3 kernel's centre, squared
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    bump = torch.zeros(7, 16, 16)
+    bump[:3, 4:8, 4:8] = 0.5
+    patch = bump.flatten() > 0
+
+    def run(weight):  # mean_map_beta 0.9: at 0.99 the running mean lags so far that G overshoots and swings back
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01,
+                                              mean_map_weight=weight, mean_map_beta=0.9))
+        state.regions = regions
+        with torch.no_grad():
+            base = _mean_map(state.G(z).cat(), regions).mean(0)
+        state.mean_map_target = base + bump.flatten()
+        out = _seeded_steps(state, data)
+        with torch.no_grad():
+            d = _mean_map(state.G(z).cat(), regions).mean(0) - base
+        return float(d[patch].mean() - d[~patch].mean()), out
+
+    off, l_off = run(0.0)
+    on, l_on = run(0.2)
+    # the patch rises above the rest with the term; without it the whole map moves together
+    assert on > 0.15 and abs(off) < 0.05, (on, off)  # 0.295 and -0.008 measured
+    assert "mean_map_gap" not in l_off[0] and l_on[-1]["mean_map_gap"] < l_on[0]["mean_map_gap"]
+    _assert_region_term_refusals("mean_map", data, tmp_path)
+
+
 def test_region_moments_matches_reference_known_values_gradients_and_bad_input():
     from fitme_cli.reflectance.gan.metrics import region_moments
 
@@ -1831,7 +1871,11 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_band_ratio_by_region", "albedo_spectrum_tv_by_region", "modality_consistency",
                       "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step", "albedo_band_ratio_hairline",
                       "albedo_band_ratio_by_side", "albedo_normal_relief_by_region", "albedo_moment_ratio_by_region",
-                      "albedo_band_ratio_features", "beard_hair_share"}
+                      "albedo_band_ratio_features", "beard_hair_share", "crown_flow",
+                      "mean_map_abs_diff"}
+    assert list(m["mean_map_abs_diff"]) == ["albedo", "specular", "normals"] and all(
+        0 <= v[k] < 2 for v in m["mean_map_abs_diff"].values() for k in ("gan_vs_heldout_half", "half_vs_half"))
+    assert m["crown_flow"] is None  # its window needs 128^2 or more (test_card_crown_flow_finds_the_turn)
     beard = m["beard_hair_share"]
     assert list(beard) == ["data", "gan"] and all(
         list(v) == ["q25_q50_q75_q90", "samples_at_least_0.3", "samples_at_least_0.6"] for v in beard.values())
@@ -1989,6 +2033,96 @@ def test_orientation_field_known_values():
     assert orientation_field(torch.cat([vertical, -vertical]))[inner].mean(0).norm(dim=0).min() > 0.999
     with pytest.raises(ValueError, match=r"expected a float \(N, R, R\) image"):
         orientation_field(vertical[0])
+
+
+def _fan(n: int = 1, r: int = 128, whorl_x: float = 64.0) -> torch.Tensor:
+    """(n, r, r) luminance of strands fanning out from a whorl above the top row at column ``whorl_x``."""
+    y, x = torch.meshgrid(torch.arange(r, dtype=torch.float64), torch.arange(r, dtype=torch.float64), indexing="ij")
+    return torch.sin(30 * torch.atan2(x - whorl_x, y + 10))[None].expand(n, r, r).clone()
+
+
+def test_crown_flow_known_values_mirror_and_gradcheck():
+    from fitme_cli.reflectance.gan.metrics import crown_flow, crown_window
+
+    assert crown_window(256) == (slice(2, 40), slice(96, 160)) and crown_window(128) == (slice(1, 20), slice(48, 80))
+    fan = _fan(2, whorl_x=63.5)  # the layout's centre: between columns 63 and 64
+    f = crown_flow(fan)
+    assert f.shape == (2, 2, 32) and f.dtype == torch.float64
+    vert, tilt = f[0]
+    # strands turn through vertical at the centre: tilt changes sign there, verticality peaks there
+    assert bool((tilt[:14] > 0.1).all() and (tilt[18:] < -0.1).all()), tilt
+    assert abs(float(tilt[15] + tilt[16])) < 1e-6 and int(vert.argmax()) in (15, 16) and float(vert.max()) > 0.8
+    # the mirror image (u -> 1 - u) mirrors the profile and turns the tilt over, bin for bin
+    m = crown_flow(fan.flip(-1))[0]
+    torch.testing.assert_close(m, torch.stack([vert.flip(0), -tilt.flip(0)]))
+    # a fan turned 4 texels right of the centre (the 176.50 kimg G's): the sign change moves with it
+    moved = crown_flow(_fan(1, whorl_x=67.5))[0, 1]
+    assert float(moved[17]) > 0.1 and float(moved[20]) < -0.1 and float(tilt[17]) < -0.1
+    torch.autograd.gradcheck(crown_flow, _fan(1).requires_grad_(True), fast_mode=True)
+    for bad, match in ((torch.zeros(1, 128, 64), r"expected float \(N, R, R\)"), (torch.zeros(128, 128), "expected float"),
+                       (torch.zeros(1, 128, 128, dtype=torch.int32), "expected float"),
+                       (torch.zeros(1, 96, 96), "multiple of 128")):
+        with pytest.raises(ValueError, match=match):
+            crown_flow(bad)
+
+
+def test_card_crown_flow_finds_the_turn():
+    from fitme_cli.reflectance.gan.metrics import crown_flow
+    from fitme_cli.reflectance.gan.report import _crown
+
+    data = crown_flow(_fan(8, whorl_x=63.5)).float()
+    same = _crown(data, data)
+    assert same["gan_vs_heldout_half"] == 0 and same["tilt_turns_at_u"] == {"data": 0.5, "gan": 0.5}
+    moved = _crown(crown_flow(_fan(8, whorl_x=67.5)).float(), data)
+    assert moved["tilt_turns_at_u"]["gan"] == pytest.approx(68 / 128, abs=0.004)  # the whorl's column, as u
+    assert moved["gan_vs_heldout_half"] > 0.02 and moved["centre_verticality"]["gan"] < moved["centre_verticality"]["data"]
+    flat = _crown(torch.zeros(8, 2, 32), data)
+    assert flat["tilt_turns_at_u"]["gan"] is None
+
+
+def test_card_mean_map_gaps_known_values():
+    from fitme_cli.reflectance.gan.report import _mean_map_gaps
+
+    a = torch.rand(7, 8, 8, generator=torch.Generator().manual_seed(0)).double()
+    b = a.clone()
+    b[:3, 2:4, 2:4] += 0.4  # a patch drawn in every sample: 12 of 192 albedo texel-channels
+    gaps = _mean_map_gaps(b, a, a)
+    assert gaps["albedo"] == {"gan_vs_heldout_half": pytest.approx(0.4 * 12 / 192), "half_vs_half": 0.0}
+    assert gaps["specular"]["gan_vs_heldout_half"] == 0 and gaps["normals"]["gan_vs_heldout_half"] == 0
+
+
+def test_crown_weight_pulls_the_hair_direction_across_the_crown(tmp_path):
+    """The crown term at 128^2 (its window needs a multiple of 128): the profile is pulled toward a target that
+    tilts every column's strands further one way, and the running gap falls."""
+    from fitme_cli.reflectance.gan.train import _albedo_crown
+
+    small = GanSettings(resolution=128, branch_resolution=128, channel_base=256, channel_max=8, z_dim=32, w_dim=32)
+    y, x = torch.meshgrid(torch.linspace(0, 1, 128), torch.linspace(0, 1, 128), indexing="ij")
+    lum = (0.4 + 0.2 * _fan(16).float()) * (1 + 0.1 * torch.rand(16, 1, 1, generator=torch.Generator().manual_seed(3)))
+    maps = ReflectanceMaps(lum[:, None].expand(16, 3, 128, 128) ** 2.2, 0.2 + 0 * lum[:, None],
+                           torch.stack([0 * x, 0 * x, 1 + 0 * x])[None].expand(16, 3, 128, 128))
+    data = encode_maps(maps, small).cat()
+    regions = torch.zeros(128, 128, dtype=torch.uint8)
+    z = torch.randn(32, small.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def run(weight):
+        state = new_state(small, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01, crown_weight=weight,
+                                               crown_beta=0.9))
+        state.regions = regions
+        with torch.no_grad():
+            base = _albedo_crown(state.G(z).cat(), regions).mean(0)
+        state.crown_target = base + torch.cat([torch.zeros(32), torch.full((32,), 0.3)])
+        out = _seeded_steps(state, data, 20)
+        with torch.no_grad():
+            now = _albedo_crown(state.G(z).cat(), regions).mean(0)
+        return float((now - base)[32:].mean()), out
+
+    off, l_off = run(0.0)
+    on, l_on = run(5.0)
+    # fresh, the adversarial steps alone move the profile too (toward the fan's); the term adds its pull on top
+    assert on - off > 0.3, (on, off)  # +0.25 against -0.52 measured
+    assert "crown_gap" not in l_off[0] and l_on[-1]["crown_gap"] < l_on[0]["crown_gap"]
+    _assert_region_term_refusals("crown", _tiny_data(), tmp_path)
 
 
 def test_std_parts_known_values_and_bad_input():

@@ -44,7 +44,7 @@ _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", 
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
-                "beard_weight", "tone_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
+                "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema")
 
 
@@ -107,6 +107,14 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
               help="Pull the running mean of each sample's per-region mean albedo, and the running variance of it "
                    "within each batch, to the data's (the eye openings left out): the spread of skin tones between "
                    "samples, against a narrowed range of tones (not in the paper; may change on --resume). [0]")
+@click.option("--crown-weight", type=click.FloatRange(min=0),
+              help="Pull the running mean of the hair's direction across the crown, column by column, to the data's: "
+                   "strands fanning out from the whorl at the top centre, against a left and a right field meeting in "
+                   "a line (not in the paper; may change on --resume). [0]")
+@click.option("--mean-map-weight", type=click.FloatRange(min=0),
+              help="Pull the running mean of G's maps, texel by texel, to the data's mean maps, against whatever G "
+                   "draws at the same place in every sample: a line down the crown, a rim along the hairline "
+                   "(not in the paper; may change on --resume). [0]")
 @click.option("--hairline-region/--no-hairline-region", default=None,
               help="The per-region terms also measure the data's hairline as a region of its own, against a soft "
                    "hairline (not in the paper; may change on --resume). [off]")
@@ -195,8 +203,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
                       "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
-                      "spectrum_weight", "relief_weight", "colour_weight", "beard_weight", "tone_weight", "hairline_region",
-                      "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
+                      "spectrum_weight", "relief_weight", "colour_weight", "beard_weight", "tone_weight", "crown_weight",
+                      "mean_map_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:

@@ -22,6 +22,9 @@
 - ``region_spectrum`` / ``spectrum_distance``: how the finest band's energy is spread over 2-D
   frequencies, per region. The band energies and coherences cannot tell sparse pores from a regular
   texel lattice of the same energy; the spectrum can (a lattice is a peak).
+- ``crown_flow``: which way the hair runs across the crown, column by column. The data's strands fan out from
+  the whorl at the top centre (u = 0.5), turning smoothly through vertical; a G that draws a left and a right
+  field meeting in a line (the seam of the 176.50 kimg person test) shows as a jump or a shift of the profile.
 - ``hair_share``: per sample, the share of a zone that reads as hair (a rough local texture). The data's beards
   are there or not (a bimodal share); the means over samples that the other measures take cannot see a G that
   draws a thin beard on every face, or none. ``soft_hair_share`` is its differentiable twin, for training.
@@ -41,7 +44,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
-           "soft_hair_share"]
+           "soft_hair_share", "crown_window", "crown_flow", "gaussian_blur"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -367,7 +370,7 @@ def interpolation_smoothness(images: torch.Tensor) -> float:
     return float(steps.max() / steps.mean().clamp(min=1e-12))
 
 
-def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """(N, 1, R, R) -> same, separable Gaussian (radius 3 sigma), reflected borders."""
     r = int(math.ceil(3 * sigma))
     t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
@@ -387,7 +390,7 @@ def _structure_tensor(img: torch.Tensor, sigma: float) -> tuple[torch.Tensor, to
     x = img[:, None]
     gx = F.pad(x[..., :, 2:] - x[..., :, :-2], (1, 1, 0, 0), mode="replicate")
     gy = F.pad(x[..., 2:, :] - x[..., :-2, :], (0, 0, 1, 1), mode="replicate")
-    jxx, jyy, jxy = (_gaussian_blur(a, sigma) for a in (gx * gx, gy * gy, gx * gy))
+    jxx, jyy, jxy = (gaussian_blur(a, sigma) for a in (gx * gx, gy * gy, gx * gy))
     return jxx, jyy, jxy
 
 
@@ -411,6 +414,31 @@ def orientation_field(img: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
     way (the data's hair flows from the crown: 0.61 of a possible 0.67 on the scalp)."""
     jxx, jyy, jxy = _structure_tensor(img, sigma)
     return torch.cat([jxx - jyy, 2 * jxy], 1) / (jxx + jyy).clamp(min=1e-30)
+
+
+def crown_window(resolution: int) -> tuple[slice, slice]:
+    """Rows and columns of the crown in the UV layout at ``resolution``: rows R/128 to 5R/32 and columns 3R/8 to
+    5R/8 (2-40 and 96-160 at 256^2), the top centre where the data's hair fans out from the whorl; the window
+    ``docs/brdf_gan_crown_176kimg.png`` shows."""
+    if resolution < 128 or resolution % 128:
+        raise ValueError(f"crown_window needs a resolution that is a multiple of 128, got {resolution}")
+    return slice(resolution // 128, 5 * resolution // 32), slice(3 * resolution // 8, 5 * resolution // 8)
+
+
+def crown_flow(lum: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
+    """lum: (N, R, R) float luminance, any units, R a multiple of 128 -> (N, 2, 32) same dtype: 32 column
+    bins of R / 128 texels: ``orientation_field`` (coherence x (cos 2t, sin 2t), t the dominant gradient's angle)
+    averaged over the ``crown_window``'s rows and each bin's columns. Component 0 is 1 for strands running
+    along v (vertical in the map), -1 along u; component 1 is the strands' tilt. The data's mean over samples
+    (256^2): component 1 runs from +0.6 to -0.6 across the window, through 0 at u = 0.5, while component 0
+    peaks there (0.39). Differentiable (the BRDF-GAN's crown term); the field is taken on a band of rows
+    below the window too, so that its lower edge is not a border."""
+    if lum.ndim != 3 or not lum.is_floating_point() or lum.shape[1] != lum.shape[2]:
+        raise ValueError(f"expected float (N, R, R) luminance, got {tuple(lum.shape)} {lum.dtype}")
+    rows, cols = crown_window(lum.shape[-1])
+    band = orientation_field(lum[:, : rows.stop + lum.shape[-1] // 32], sigma)  # (N, 2, rows', R)
+    w = band[:, :, rows, cols].mean(2)  # (N, 2, cols)
+    return w.unflatten(2, (-1, lum.shape[-1] // 128)).mean(3)
 
 
 def region_relief(lum: torch.Tensor, normals_xy: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:

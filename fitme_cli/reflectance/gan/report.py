@@ -17,7 +17,7 @@ import torch
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, brow_edges, eye_openings,
                    hairline_zones, load_dataset, load_regions, split_sides)
 from .latents import sample_z
-from .metrics import (ChannelStats, StdParts, detail_region, feature_parts, frechet_distance, hair_share,
+from .metrics import (ChannelStats, StdParts, crown_flow, detail_region, feature_parts, frechet_distance, hair_share,
                       interpolation_smoothness, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
@@ -82,6 +82,8 @@ class _Side:
     moments: torch.Tensor  # (k', 2, 3) ``metrics.region_moments`` per region of ``features`` (eyes, brow edges carved)
     feature_bands: torch.Tensor  # (k', 3 bands) band RMS per region of ``features``
     beard: torch.Tensor  # (N,) ``metrics.hair_share`` of ``data.beard_zone``
+    crown: torch.Tensor | None  # (N, 2, 32) ``metrics.crown_flow`` of the albedo's luminance; None below 128^2
+    mean_maps: tuple[torch.Tensor, torch.Tensor]  # (7, R, R) float64 mean maps of the first and the second half
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
@@ -89,9 +91,14 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
              beard: torch.Tensor) -> _Side:
     """One side of the comparison (generated when src is None); ``features``: the regions with the eye openings and
     brow edges carved in (``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``); ``beard``: ``data.beard_zone``."""
-    st, fs, cm, sp, hz, sd, rl, mo, fb, bs = _Stats(mapped), [], [], [], [], [], [], [], [], []
+    st, fs, cm, sp, hz, sd, rl, mo, fb, bs, cr = _Stats(mapped), [], [], [], [], [], [], [], [], [], []
+    sums, counts, seen = [0.0, 0.0], [0, 0], 0
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
+        for j, part in enumerate((x[: max(n // 2 - seen, 0)], x[max(n // 2 - seen, 0):])):
+            sums[j] = sums[j] + part.double().sum(0)
+            counts[j] += len(part)
+        seen += len(x)
         fs.append(reflectance_features(x, regions))
         sp.append(region_spectrum(x[:, :3].mean(1), regions))
         hz.append(region_band_energy(x[:, :3], zones).mean(3))
@@ -100,12 +107,15 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         mo.append(region_moments(x[:, :3], features))
         fb.append(region_band_energy(x[:, :3], features).mean(3))
         bs.append(hair_share(x[:, :3], beard))
+        if x.shape[-1] % 128 == 0:  # the crown window's bins are R / 128 texels
+            cr.append(crown_flow(x[:, :3].mean(1)))
         if sum(len(c) for c in cm) < 200:
             cm.append(x)
     first = torch.cat(cm)[:200]
     return _Side(st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
                  strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0), torch.cat(sd).mean(0),
-                 torch.cat(rl).mean(0), torch.cat(mo).mean(0), torch.cat(fb).mean(0), torch.cat(bs))
+                 torch.cat(rl).mean(0), torch.cat(mo).mean(0), torch.cat(fb).mean(0), torch.cat(bs),
+                 torch.cat(cr) if cr else None, (sums[0] / max(counts[0], 1), sums[1] / max(counts[1], 1)))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -227,6 +237,13 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # beards are there or not in the data, and a G can lose them while every mean above holds (docs/brdf_gan.md):
         # per sample, the share of the beard zone that reads as hair (``metrics.hair_share``)
         "beard_hair_share": {"data": _beard_shares(real.beard), "gan": _beard_shares(gan.beard)},
+        # a left and a right field of hair meeting in a line down the crown (the 176.50 kimg person test's first tell):
+        # the mean direction across the crown, column bin by bin (``metrics.crown_flow``)
+        "crown_flow": None if real.crown is None else _crown(gan.crown, real.crown),
+        # what G draws at the same place in every sample (a line down the crown, rims along the hairline and brows):
+        # the mean |difference| of the mean maps, texel by texel, G's (all its samples: as many as a data half by
+        # default) against the data's second half, and the data's halves against each other (``_mean_map_gaps``)
+        "mean_map_abs_diff": _mean_map_gaps((gan.mean_maps[0] + gan.mean_maps[1]) / 2, *real.mean_maps),
         "modality_consistency": {"gan_matched": round(gan.consistency[0], 3), "gan_mismatched": round(gan.consistency[1], 3),
                                  "data_matched": round(real.consistency[0], 3), "data_mismatched": round(real.consistency[1], 3)},
         # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region
@@ -235,6 +252,32 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                              for j, lab in enumerate(region_labels(regions))},
         "interpolation_max_over_mean_step": {"median": round(float(np.median(ratios)), 3), "max": round(float(np.max(ratios)), 3)},
     }
+
+
+def _mean_map_gaps(gan: torch.Tensor, real_a: torch.Tensor, real_b: torch.Tensor) -> dict:
+    """(7, R, R) physical mean maps -> per modality (albedo linear RGB, specular, normals xyz), the mean |G - data B|
+    and |data A - data B| over texels and channels: what the data's sampling noise allows, and G's excess."""
+    parts = {"albedo": slice(0, 3), "specular": slice(3, 4), "normals": slice(4, 7)}
+    return {k: {"gan_vs_heldout_half": round(float((gan[c] - real_b[c]).abs().mean()), 5),
+                "half_vs_half": round(float((real_a[c] - real_b[c]).abs().mean()), 5)} for k, c in parts.items()}
+
+
+def _crown(gan: torch.Tensor, real: torch.Tensor) -> dict:
+    """(N, 2, 32) ``metrics.crown_flow`` of G's samples and the data's -> the mean profiles' distance (mean |difference|
+    over bins and both components), G against the held-out half and half against half; where the mean tilt turns
+    (u of its sign change nearest the centre; the data's is 0.5); and the mean verticality at the centre's 4 bins."""
+    half = len(real) // 2
+    ga, ra, rb = gan[: len(real) - half].mean(0), real[:half].mean(0), real[half:].mean(0)
+
+    def turn(tilt: torch.Tensor) -> float | None:
+        c = len(tilt)
+        cuts = [i + float(tilt[i] / (tilt[i] - tilt[i + 1])) for i in range(c - 1) if tilt[i] > 0 >= tilt[i + 1]]
+        return round(3 / 8 + (min(cuts, key=lambda v: abs(v - (c - 1) / 2)) + 0.5) / (4 * c), 4) if cuts else None
+
+    mid = slice(len(ga[0]) // 2 - 2, len(ga[0]) // 2 + 2)
+    return {"gan_vs_heldout_half": round(float((ga - rb).abs().mean()), 4), "half_vs_half": round(float((ra - rb).abs().mean()), 4),
+            "tilt_turns_at_u": {"data": turn(real.mean(0)[1]), "gan": turn(gan.mean(0)[1])},
+            "centre_verticality": {"data": round(float(real.mean(0)[0, mid].mean()), 3), "gan": round(float(gan.mean(0)[0, mid].mean()), 3)}}
 
 
 def _by_side(ratio: torch.Tensor, regions: torch.Tensor) -> dict[str, list[float | None]]:

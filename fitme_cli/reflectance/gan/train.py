@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from .ada import augment
 from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone
 from .latents import sample_z
-from .metrics import (detail_link, region_band_energy, region_coherence, region_labels, region_moments, region_relief,
+from .metrics import (crown_flow, detail_link, gaussian_blur, region_band_energy, region_coherence, region_labels, region_moments, region_relief,
                       region_spectrum, soft_hair_share)
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
@@ -35,7 +35,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
 # ``running_{term}`` in the state, and its measure in ``_region_measures``
-_REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone")
+_REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone", "crown", "mean_map")
 
 
 @dataclass(frozen=True)
@@ -137,6 +137,23 @@ class TrainSettings:
     # square, which G's swings of its mean tone between steps inflate (``_albedo_tone``). 0: off (the paper)
     tone_weight: float = 0.0
     tone_beta: float = 0.99  # per-step decay of the running tone means and variances
+    # not in the paper: weight of a term that pulls the running mean of the hair's direction across the crown, column
+    # by column (``metrics.crown_flow``), to the data's. The data's strands fan out from the whorl at the top centre,
+    # turning smoothly through vertical at u = 0.5; at 176.50 kimg G drew a left and a right field meeting in a line,
+    # the first tell of the person test, with the turn 4 texels right of the data's and the strands at the centre
+    # columns not vertical (0.01 where the data has 0.39). Region-wide coherence and direction cannot see where in
+    # the region the turn is. The window is the layout's, not a region label: no region flag. 0: off (the paper)
+    crown_weight: float = 0.0
+    crown_beta: float = 0.99  # per-step decay of the running profile
+    # not in the paper: weight of a term that pulls the running mean of G's maps, texel by texel (all 7 channels,
+    # blurred by a Gaussian of 1 texel against sampling noise: ``_mean_map``), to the data's mean maps. Whatever G
+    # draws at the same place in every sample shows there and nowhere else: at 178.00 kimg the albedo's mean was 0.27
+    # darker (network units) in a line down the crown at u = 0.48, the person test's seam, with rims along the
+    # hairline and the brows and ridges along the map's borders, while two halves of the data differ by noise only
+    # (docs/brdf_gan.md). The means over regions the other terms take cannot see where in a region. Drift-style like
+    # the coherence term; no region flag. 0: off (the paper)
+    mean_map_weight: float = 0.0
+    mean_map_beta: float = 0.99  # per-step decay of the running mean maps
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -268,6 +285,14 @@ class TrainState:
     # of a batch (``_albedo_tone``), the tone term's target, and G's running ones; derived and saved like the link's
     tone_target: torch.Tensor | None = None
     running_tone: torch.Tensor | None = None
+    # (64,) float32: the data's mean hair direction across the crown (``_albedo_crown``), the crown term's
+    # target, and G's running one; derived and saved like the link's
+    crown_target: torch.Tensor | None = None
+    running_crown: torch.Tensor | None = None
+    # (7 * R * R,) float32: the data's blurred mean maps (``_mean_map``), the mean-map term's target, and G's running
+    # ones; derived and saved like the link's
+    mean_map_target: torch.Tensor | None = None
+    running_mean_map: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -534,6 +559,20 @@ def _albedo_tone(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     return torch.stack([m, dev], 1).flatten(1)
 
 
+def _albedo_crown(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 64): ``metrics.crown_flow`` of the albedo's luminance, network space
+    (sRGB-encoded) like the coherence term. ``regions`` is not used: the window is the layout's."""
+    return crown_flow(x[:, :3].mean(1)).flatten(1)
+
+
+def _mean_map(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 7 * R * R): each map blurred by a Gaussian of 1 texel (reflected borders),
+    so that the running mean's sampling noise (~0.015 per texel over 400 samples of the scalp) drops by ~3.5 while a
+    2-texel line keeps half its depth. ``regions`` is not used."""
+    b, c, r, _ = x.shape
+    return gaussian_blur(x.reshape(b * c, 1, r, r), 1.0).reshape(b, -1)
+
+
 def _tone_scale(target: torch.Tensor) -> torch.Tensor:
     """(2 * k * 3,) ``_albedo_tone`` target -> (2 * k * 3,) the scale its loss and gap divide by: each mean by
     itself (floored at ``_COLOUR_FLOOR``), as the colour term; every variance by the mean of the variances' targets.
@@ -583,17 +622,18 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
     for ``train_step`` and ``warm_running``, so that a warm start measures what the term pulls."""
     return {"coherence": _albedo_coherence, "band": lambda x, regions: _albedo_bands(x, regions, t.band_levels),
             "spectrum": _albedo_spectra, "relief": _albedo_relief, "colour": _albedo_colour, "beard": _albedo_beard,
-            "tone": _albedo_tone}
+            "tone": _albedo_tone, "crown": _albedo_crown, "mean_map": _mean_map}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum: mean
 # TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the same over ``_tone_scale``;
-# beard: mean |running - target|
+# beard, crown and mean_map: mean |running - target|
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
-                  "tone": (tone_loss, _tone_gap)}
+                  "tone": (tone_loss, _tone_gap), "crown": (coherence_loss, _abs_gap),
+                  "mean_map": (coherence_loss, _abs_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
