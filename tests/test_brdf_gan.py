@@ -1731,8 +1731,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--hairline-region", "--side-regions", "--eye-region", "--brow-edge-region",
-                                  "--branch-noise", "0.05", "--threads", "1"])
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--hairline-region", "--side-regions",
+                                  "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
@@ -1752,6 +1752,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert lines[-1]["band_gap"] >= 0 and "band_gap" not in lines[0]
     assert 0 <= lines[-1]["relief_gap"] <= 2 and "relief_gap" not in lines[0]
     assert lines[-1]["colour_gap"] >= 0 and "colour_gap" not in lines[0]
+    assert state.train.mean_map_weight == 0.01 and lines[-1]["mean_map_gap"] > 0 and "mean_map_gap" not in lines[0]
     # at 16^2 no region has a whole 16^2 window: the term runs, and its gap counts no region
     assert state.train.spectrum_weight == 0.01 and lines[-1]["spectrum_gap"] == 0 and "spectrum_gap" not in lines[0]
     strengths = [float(p) for n, p in state.G_ema.named_parameters() if "branches" in n and n.endswith("noise_strength")]
@@ -1761,6 +1762,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 2 and "--ema-kimg" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "h"), "--resolution", "16", "--hairline-region"])
     assert r.exit_code == 2 and "hairline_region needs a per-region term" in r.output
+    r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "c"), "--resolution", "16", "--crown-weight", "1"])
+    assert r.exit_code == 2 and "--crown-weight needs a resolution that is a multiple of 128" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--batch", "8"])
     assert r.exit_code == 2 and "--batch cannot change on --resume" in r.output
     # the channels may grow on resume (gan/widen.py); nothing else of the architecture may change

@@ -192,6 +192,9 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         gan_settings = GanSettings(**cfg["gan"])
     except (TypeError, ValueError) as e:
         raise click.BadParameter(str(e)) from None
+    if train_settings.crown_weight > 0 and gan_settings.resolution % 128:
+        raise click.BadParameter(f"--crown-weight needs a resolution that is a multiple of 128 (its window's bins are "
+                                 f"R / 128 texels), got {gan_settings.resolution}")
 
     ckpt = run_dir / "checkpoint.safetensors"
     if resume:

@@ -128,9 +128,9 @@ def export_avatar(avatar_dir: Path, out_dir: Path, settings: ExportSettings = Ex
                   shape_model=None) -> ExportResult:
     """Export the avatar in ``avatar_dir`` into ``out_dir``. ``shape_model``: the loaded model (default:
     ``models/``'s, built on first use). Errors: AvatarInvalid, OutputNotWritable, ModelMissing."""
+    from ..fitting.avatar import check_shape_model
     from ..io.atomic import publish_file
     from ..io.maps import write_map
-    from ..fitting.avatar import check_shape_model
     from ..shape.model import load_shape_model
     from .gltf import TEXTURE_SLOTS, glb_bytes, gltf_document
     from .maps import MAP_NAMES, encode_png, exr_arrays, prepare_maps

@@ -23,8 +23,8 @@ import torch.nn.functional as F
 from .ada import augment
 from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone
 from .latents import sample_z
-from .metrics import (crown_flow, detail_link, gaussian_blur, region_band_energy, region_coherence, region_labels, region_moments, region_relief,
-                      region_spectrum, soft_hair_share)
+from .metrics import (crown_flow, detail_link, gaussian_blur, region_band_energy, region_coherence, region_labels,
+                      region_moments, region_relief, region_spectrum, soft_hair_share)
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
@@ -142,15 +142,17 @@ class TrainSettings:
     # turning smoothly through vertical at u = 0.5; at 176.50 kimg G drew a left and a right field meeting in a line,
     # the first tell of the person test, with the turn 4 texels right of the data's and the strands at the centre
     # columns not vertical (0.01 where the data has 0.39). Region-wide coherence and direction cannot see where in
-    # the region the turn is. The window is the layout's, not a region label: no region flag. 0: off (the paper)
+    # the region the turn is. The window is the layout's, not a region label: no region flag. Tried at 5 from 177.76
+    # kimg: it met the centre's verticality with a dark line (the crown's mean albedo -0.08 -> -0.29 below the
+    # data's by 178.50), since a line's edges are vertical structure too; off since (docs/brdf_gan.md). 0: off
     crown_weight: float = 0.0
     crown_beta: float = 0.99  # per-step decay of the running profile
     # not in the paper: weight of a term that pulls the running mean of G's maps, texel by texel (all 7 channels,
     # blurred by a Gaussian of 1 texel against sampling noise: ``_mean_map``), to the data's mean maps. Whatever G
-    # draws at the same place in every sample shows there and nowhere else: at 178.00 kimg the albedo's mean was 0.27
-    # darker (network units) in a line down the crown at u = 0.48, the person test's seam, with rims along the
-    # hairline and the brows and ridges along the map's borders, while two halves of the data differ by noise only
-    # (docs/brdf_gan.md). The means over regions the other terms take cannot see where in a region. Drift-style like
+    # draws at the same place in every sample shows there and nowhere else: at 177.75 kimg the albedo's mean was
+    # 0.08 darker (network units) in a line down the crown at u = 0.48, the person test's seam, with rims along the
+    # hairline and the brows and ridges along the map's borders, while two halves of the data differ by noise only.
+    # At 0.0015 from 178.57 kimg the 7 maps' mean |G - data| went 0.064 -> 0.035 by 180.00 (docs/brdf_gan.md). The means over regions the other terms take cannot see where in a region. Drift-style like
     # the coherence term; no region flag. 0: off (the paper)
     mean_map_weight: float = 0.0
     mean_map_beta: float = 0.99  # per-step decay of the running mean maps
