@@ -70,8 +70,7 @@ def write_avatar(out: Path, records: list[PhotoRecord], photos: list[PhotoInput]
     with torch.no_grad():
         dev = sm.mean.device
         shp = sm(inv.p_s.to(dev).expand(n, -1), inv.p_e.to(dev))
-    save_params(out / "params.safetensors", inv, photos, shp.vertices.cpu())
-    with torch.no_grad():
+        save_params(out / "params.safetensors", inv, photos, shp.vertices.cpu())
         renderer = Renderer.for_shape_model(sm).to(dev)
         final = ReflectanceMaps(*(t.to(dev) for t in (maps.albedo, maps.specular, maps.normals)))
         photo_lin = torch.stack([torch.from_numpy(p.crop).permute(2, 0, 1).float() / 255 for p in photos]).to(dev)
