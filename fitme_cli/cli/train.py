@@ -44,8 +44,8 @@ _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", 
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
-                "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
-                "drift_on_ema")
+                "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
+                "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
 
 
 @click.command("train")
@@ -115,6 +115,13 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
               help="Pull the running mean of G's maps, texel by texel, to the data's mean maps, against whatever G "
                    "draws at the same place in every sample: a line down the crown, a rim along the hairline "
                    "(not in the paper; may change on --resume). [0]")
+@click.option("--tone-order-weight", type=click.FloatRange(min=0),
+              help="Pull the running mean of each batch's sorted per-region mean albedos, less the batch's mean, to "
+                   "the data's expected order statistics: the skew of the tones (a long tail of fair skin), which the "
+                   "tone term's mean and variance do not pin (not in the paper; may change on --resume). [0]")
+@click.option("--detail-map-weight", type=click.FloatRange(min=0),
+              help="Pull the running mean of where G's maps have fine detail, texel by texel, to the data's, against a "
+                   "band without strands down the crown, whatever its sign (not in the paper; may change on --resume). [0]")
 @click.option("--hairline-region/--no-hairline-region", default=None,
               help="The per-region terms also measure the data's hairline as a region of its own, against a soft "
                    "hairline (not in the paper; may change on --resume). [off]")
@@ -207,7 +214,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
                       "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
                       "spectrum_weight", "relief_weight", "colour_weight", "beard_weight", "tone_weight", "crown_weight",
-                      "mean_map_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
+                      "mean_map_weight", "tone_order_weight", "detail_map_weight", "hairline_region", "side_regions", "eye_region",
+                      "brow_edge_region", "drift_on_ema")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:

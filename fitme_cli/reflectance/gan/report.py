@@ -17,11 +17,11 @@ import torch
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, brow_edges, eye_openings,
                    hairline_zones, load_dataset, load_regions, split_sides)
 from .latents import sample_z
-from .metrics import (ChannelStats, StdParts, crown_flow, detail_region, feature_parts, frechet_distance, hair_share,
+from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_region, feature_parts, frechet_distance, hair_share,
                       interpolation_smoothness, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
-from .networks import GanImages, Generator, decode_maps
+from .networks import GanImages, Generator, ReflectanceMaps, decode_maps, encode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
 
@@ -84,6 +84,7 @@ class _Side:
     beard: torch.Tensor  # (N,) ``metrics.hair_share`` of ``data.beard_zone``
     crown: torch.Tensor | None  # (N, 2, 32) ``metrics.crown_flow`` of the albedo's luminance; None below 128^2
     mean_maps: tuple[torch.Tensor, torch.Tensor]  # (7, R, R) float64 mean maps of the first and the second half
+    detail_maps: tuple[torch.Tensor, torch.Tensor]  # (3, R, R) float64 mean ``metrics.detail_map`` of each half
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
@@ -92,11 +93,14 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     """One side of the comparison (generated when src is None); ``features``: the regions with the eye openings and
     brow edges carved in (``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``); ``beard``: ``data.beard_zone``."""
     st, fs, cm, sp, hz, sd, rl, mo, fb, bs, cr = _Stats(mapped), [], [], [], [], [], [], [], [], [], []
-    sums, counts, seen = [0.0, 0.0], [0, 0], 0
+    sums, dsums, counts, seen = [0.0, 0.0], [0.0, 0.0], [0, 0], 0
     for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
         for j, part in enumerate((x[: max(n // 2 - seen, 0)], x[max(n // 2 - seen, 0):])):
             sums[j] = sums[j] + part.double().sum(0)
+            if len(part):  # in network space, as the detail-map term measures it
+                net = encode_maps(ReflectanceMaps(part[:, :3], part[:, 3:4], part[:, 4:]), G.settings).cat()
+                dsums[j] = dsums[j] + detail_map(net).double().sum(0)
             counts[j] += len(part)
         seen += len(x)
         fs.append(reflectance_features(x, regions))
@@ -115,7 +119,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     return _Side(st.result(), np.concatenate(fs), modality_consistency(first, skin), std_parts(first, mapped),
                  strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0), torch.cat(sd).mean(0),
                  torch.cat(rl).mean(0), torch.cat(mo).mean(0), torch.cat(fb).mean(0), torch.cat(bs),
-                 torch.cat(cr) if cr else None, (sums[0] / max(counts[0], 1), sums[1] / max(counts[1], 1)))
+                 torch.cat(cr) if cr else None, (sums[0] / max(counts[0], 1), sums[1] / max(counts[1], 1)),
+                 (dsums[0] / max(counts[0], 1), dsums[1] / max(counts[1], 1)))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -244,6 +249,9 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # the mean |difference| of the mean maps, texel by texel, G's (all its samples: as many as a data half by
         # default) against the data's second half, and the data's halves against each other (``_mean_map_gaps``)
         "mean_map_abs_diff": _mean_map_gaps((gan.mean_maps[0] + gan.mean_maps[1]) / 2, *real.mean_maps),
+        # where G has fine detail, texel by texel, whatever its sign (a band without strands down the crown that the
+        # mean maps cannot see): ``_detail_map_gaps``
+        "detail_map_log2_ratio": _detail_map_gaps((gan.detail_maps[0] + gan.detail_maps[1]) / 2, *real.detail_maps),
         "modality_consistency": {"gan_matched": round(gan.consistency[0], 3), "gan_mismatched": round(gan.consistency[1], 3),
                                  "data_matched": round(real.consistency[0], 3), "data_mismatched": round(real.consistency[1], 3)},
         # strands vs grain: mean structure-tensor coherence of [albedo luminance, normal x] per region
@@ -260,6 +268,22 @@ def _mean_map_gaps(gan: torch.Tensor, real_a: torch.Tensor, real_b: torch.Tensor
     parts = {"albedo": slice(0, 3), "specular": slice(3, 4), "normals": slice(4, 7)}
     return {k: {"gan_vs_heldout_half": round(float((gan[c] - real_b[c]).abs().mean()), 5),
                 "half_vs_half": round(float((real_a[c] - real_b[c]).abs().mean()), 5)} for k, c in parts.items()}
+
+
+def _detail_map_gaps(gan: torch.Tensor, real_a: torch.Tensor, real_b: torch.Tensor) -> dict:
+    """(3, R, R) mean ``metrics.detail_map`` (albedo luminance, normals x, y) -> per channel, the mean |log2 G / data B|
+    and |log2 data A / data B| over the texels where data B has at least 5 % of its channel's mean detail (the map's
+    borders and the eye holes have ~0), and G over data B over the crown's centre (rows R/128 to 5R/32, columns
+    31R/64 to 35R/64: where G left a band without strands)."""
+    out = {}
+    r = gan.shape[-1]
+    for c, name in enumerate(("albedo_luminance", "normals_x", "normals_y")):
+        keep = real_b[c] >= 0.05 * real_b[c].mean()
+        log = lambda a: float((a[c][keep].clamp_min(1e-12) / real_b[c][keep]).log2().abs().mean())  # noqa: E731
+        centre = (slice(r // 128, 5 * r // 32), slice(31 * r // 64, 35 * r // 64))
+        out[name] = {"gan_vs_heldout_half": round(log(gan), 4), "half_vs_half": round(log(real_a), 4),
+                     "crown_centre_gan_over_data": round(float(gan[c][centre].mean() / real_b[c][centre].mean()), 3)}
+    return out
 
 
 def _crown(gan: torch.Tensor, real: torch.Tensor) -> dict:

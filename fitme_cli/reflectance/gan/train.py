@@ -23,19 +23,21 @@ import torch.nn.functional as F
 from .ada import augment
 from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone
 from .latents import sample_z
-from .metrics import (crown_flow, detail_link, gaussian_blur, region_band_energy, region_coherence, region_labels,
+from .metrics import (crown_flow, detail_link, detail_map, gaussian_blur, region_band_energy, region_coherence, region_labels,
                       region_moments, region_relief, region_spectrum, soft_hair_share)
 from .networks import Discriminator, GanSettings, Generator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
-           "data_spectrum", "spectrum_loss", "colour_loss", "set_branch_noise", "clear_running"]
+           "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
+           "set_branch_noise", "clear_running"]
 
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
 # ``running_{term}`` in the state, and its measure in ``_region_measures``
-_REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone", "crown", "mean_map")
+_REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone", "crown", "mean_map", "tone_order",
+                 "detail_map")
 
 
 @dataclass(frozen=True)
@@ -156,6 +158,25 @@ class TrainSettings:
     # the coherence term; no region flag. 0: off (the paper)
     mean_map_weight: float = 0.0
     mean_map_beta: float = 0.99  # per-step decay of the running mean maps
+    # not in the paper: weight of a term that pulls the running mean of each batch's sorted per-region mean albedos,
+    # each less the batch's mean (``_albedo_tone_order``), to the data's expected centred order statistics of a batch
+    # of the same size (``data_tone_order``). The tone term matches two moments, and the data's tones are skewed, a
+    # long tail of fair skin: at 176.50-180.00 kimg G's skin tone median was 0.14 against the data's 0.12 and its
+    # fairest tenth 0.40-0.42 against 0.44 with mean and spread matched (docs/brdf_gan.md). Centred, so that G's
+    # swings of its mean tone between steps do not read as spread; the mean stays the tone term's. At 0.05 from 180.48
+    # kimg it had nothing to pull: G_ema's expected centred order statistics of 4 for the skin were within 0.005 of
+    # the data's before it was on, and the quantiles did not move; the skew shows only in larger samples than one
+    # batch (docs/brdf_gan.md). 0: off (the paper)
+    tone_order_weight: float = 0.0
+    tone_order_beta: float = 0.99  # per-step decay of the running order statistics
+    # not in the paper: weight of a term that pulls the running mean of where G's maps have fine detail, texel by
+    # texel (``metrics.detail_map``: the squared Laplacian of the albedo's luminance and the normals' x and y,
+    # blurred by 2 texels), to the data's, each texel relative to the data's (floored). The mean-map term cannot see
+    # a band without strands whose sign changes from sample to sample: at 181.75 kimg the crown's centre columns had
+    # 0.07-0.15 of the data's detail energy, the person test's seam (docs/brdf_gan.md). Drift-style; no region
+    # flag. 0: off (the paper)
+    detail_map_weight: float = 0.0
+    detail_map_beta: float = 0.99  # per-step decay of the running detail maps
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -295,6 +316,14 @@ class TrainState:
     # ones; derived and saved like the link's
     mean_map_target: torch.Tensor | None = None
     running_mean_map: torch.Tensor | None = None
+    # (batch * k * 3,) float32: the data's expected centred order statistics of a batch's per-region mean albedos
+    # (``data_tone_order``), the tone-order term's target, and G's running ones; derived and saved like the link's
+    tone_order_target: torch.Tensor | None = None
+    running_tone_order: torch.Tensor | None = None
+    # (3 * R * R,) float32: the data's mean detail maps (``_detail_map``), the detail-map term's target, and G's
+    # running ones; derived and saved like the link's
+    detail_map_target: torch.Tensor | None = None
+    running_detail_map: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -554,9 +583,7 @@ def _albedo_tone(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     b = x.shape[0]
     if b < 2:
         raise ValueError(f"_albedo_tone needs a batch of at least 2 samples for their spread, got {b}")
-    m = region_moments(decode_albedo(x[:, :3]), regions)[:, :, 0]  # (B, k, 3)
-    labels = torch.tensor(region_labels(regions), device=x.device)
-    m = m * (labels % SIDE_OFFSET != EYE_LABEL).to(m)[None, :, None]
+    m = _region_tones(x, regions)  # (B, k, 3)
     dev = (m - m.mean(0, keepdim=True)).square() * (b / (b - 1))
     return torch.stack([m, dev], 1).flatten(1)
 
@@ -573,6 +600,93 @@ def _mean_map(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     2-texel line keeps half its depth. ``regions`` is not used."""
     b, c, r, _ = x.shape
     return gaussian_blur(x.reshape(b * c, 1, r, r), 1.0).reshape(b, -1)
+
+
+def _region_tones(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k, 3): each sample's mean linear albedo per region and channel, the eye
+    openings' 0 (``_albedo_tone`` says why)."""
+    m = region_moments(decode_albedo(x[:, :3]), regions)[:, :, 0]
+    labels = torch.tensor(region_labels(regions), device=x.device)
+    return m * (labels % SIDE_OFFSET != EYE_LABEL).to(m)[None, :, None]
+
+
+def _albedo_tone_order(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space, B >= 2 -> (B, B * k * 3): the batch's per-region mean linear albedos
+    (``_region_tones``) sorted over the batch, each less the batch's mean, flattened rank-major; every row the same,
+    so that the mean over the batch (what the drift terms track) is the batch's centred order statistics."""
+    b = x.shape[0]
+    if b < 2:
+        raise ValueError(f"_albedo_tone_order needs a batch of at least 2 samples to sort, got {b}")
+    m = _region_tones(x, regions)
+    s = (m.sort(0).values - m.mean(0, keepdim=True)).flatten()
+    return s.expand(b, -1)
+
+
+def order_weights(n: int, b: int) -> torch.Tensor:
+    """(b, n) float64: row j holds the probability that the j-th smallest of b draws (with replacement) from n sorted
+    values is the i-th: P(X_(j) <= x_(i)) = sum_{l >= j} C(b, l) F^l (1 - F)^(b - l), F = i / n, differenced over i.
+    Each row sums to 1."""
+    if n < 1 or b < 1:
+        raise ValueError(f"order_weights needs n >= 1 and b >= 1, got n={n}, b={b}")
+    f = torch.arange(n + 1, dtype=torch.float64) / n
+    cdf = torch.stack([sum(math.comb(b, l) * f**l * (1 - f) ** (b - l) for l in range(j, b + 1)) for j in range(1, b + 1)])
+    return cdf.diff(dim=1)
+
+
+def data_tone_order(data: torch.Tensor, regions: torch.Tensor, batch: int, n: int = 512, chunk: int = 64) -> torch.Tensor:
+    """(batch * k * 3,) float32: the expected ``_albedo_tone_order`` of a batch of ``batch`` maps drawn from the first
+    n data samples, exact (``order_weights`` on each region's and channel's sorted tones), not a mean over a few
+    random batches."""
+    n = min(n, len(data))
+    with torch.no_grad():
+        m = torch.cat([_region_tones(data[i:i + chunk].float(), regions) for i in range(0, n, chunk)]).double()
+    expected = torch.einsum("jn,nkc->jkc", order_weights(n, batch), m.sort(0).values)
+    return (expected - m.mean(0, keepdim=True)).flatten().float()
+
+
+def _tone_order_scale(target: torch.Tensor) -> torch.Tensor:
+    """One scale for every entry: the mean |target|, floored at ``_COLOUR_FLOOR``. Relative to each entry's own
+    target, the middle ranks' (near 0) would dominate; one scale for all weighs every region's spread by its size."""
+    return target.detach().abs().mean().clamp_min(_COLOUR_FLOOR).expand_as(target)
+
+
+def tone_order_loss(order: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """order: (B, m) of a fake batch (``_albedo_tone_order``), running and target (m,): ``coherence_loss`` of each
+    entry over ``_tone_order_scale``."""
+    return _scaled_loss(order, running, target, _tone_order_scale(target))
+
+
+def _tone_order_gap(running: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean of |running - target| / ``_tone_order_scale``: the tone-order term's gap."""
+    return _scaled_gap(running, target, _tone_order_scale(target))
+
+
+def _detail_map(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 3 * R * R): ``metrics.detail_map``. ``regions`` is not used."""
+    return detail_map(x).flatten(1)
+
+
+# the detail-map term's floor, a share of each channel's mean target: the data's map borders and flat eye holes have
+# ~0 detail, and relative to 0 a texel's gap would be infinite
+_DETAIL_FLOOR = 0.05
+
+
+def _detail_map_scale(target: torch.Tensor) -> torch.Tensor:
+    """(3 * R * R,) target -> same: each texel's target, floored at ``_DETAIL_FLOOR`` of its channel's mean."""
+    t = target.detach().view(3, -1)
+    return t.maximum(_DETAIL_FLOOR * t.mean(1, keepdim=True)).flatten()
+
+
+def detail_map_loss(maps: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """maps: (B, 3 * R * R) of a fake batch (``_detail_map``), running and target (3 * R * R,): ``coherence_loss``
+    of each texel relative to its target (``_detail_map_scale``), as ``band_loss``: the detail of the scalp is ~50
+    times that of the cheeks."""
+    return _scaled_loss(maps, running, target, _detail_map_scale(target))
+
+
+def _detail_map_gap(running: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean of |running - target| / ``_detail_map_scale``: the detail-map term's gap."""
+    return _scaled_gap(running, target, _detail_map_scale(target))
 
 
 def _tone_scale(target: torch.Tensor) -> torch.Tensor:
@@ -624,18 +738,20 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
     for ``train_step`` and ``warm_running``, so that a warm start measures what the term pulls."""
     return {"coherence": _albedo_coherence, "band": lambda x, regions: _albedo_bands(x, regions, t.band_levels),
             "spectrum": _albedo_spectra, "relief": _albedo_relief, "colour": _albedo_colour, "beard": _albedo_beard,
-            "tone": _albedo_tone, "crown": _albedo_crown, "mean_map": _mean_map}
+            "tone": _albedo_tone, "crown": _albedo_crown, "mean_map": _mean_map, "tone_order": _albedo_tone_order,
+            "detail_map": _detail_map}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum: mean
 # TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the same over ``_tone_scale``;
-# beard, crown and mean_map: mean |running - target|
+# tone_order: the same over ``_tone_order_scale``; detail_map: over ``_detail_map_scale``; beard, crown and mean_map: mean |running - target|
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
                   "tone": (tone_loss, _tone_gap), "crown": (coherence_loss, _abs_gap),
-                  "mean_map": (coherence_loss, _abs_gap)}
+                  "mean_map": (coherence_loss, _abs_gap), "tone_order": (tone_order_loss, _tone_order_gap),
+                  "detail_map": (detail_map_loss, _detail_map_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
@@ -1034,7 +1150,9 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if getattr(t, f"{term}_weight") > 0 and getattr(state, f"{term}_target") is None:
             if state.regions is None:
                 raise ValueError(f"train: {term}_weight {getattr(t, f'{term}_weight')} needs state.regions (the UV region labels)")
-            setattr(state, f"{term}_target", _data_mean(lambda x, f=measure: f(x, state.regions), data, 512, 64))
+            target = (data_tone_order(data, state.regions, t.batch) if term == "tone_order"  # exact, for this batch size
+                      else _data_mean(lambda x, f=measure: f(x, state.regions), data, 512, 64))
+            setattr(state, f"{term}_target", target)
     if state.nimg > 0:  # a resume: a checkpoint from before 2026-11-27 holds no running means, and one whose
         # regions or bands changed holds running means of another shape
         started = warm_running(state)
