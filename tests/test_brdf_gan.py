@@ -1210,7 +1210,7 @@ def test_checkpoint_drops_a_running_mean_that_measured_something_else(tmp_path):
 
     from fitme_cli.reflectance.gan.train import _RUNNING_VERSIONS
 
-    state = new_state(TINY, TrainSettings(batch=4, kimg=1))
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, tone_weight=0.1, band_weight=0.5))
     state.running_tone, state.running_band = torch.rand(12), torch.rand(6)
     save_checkpoint(state, tmp_path / "new.safetensors")
     kept = load_checkpoint(tmp_path / "new.safetensors")
@@ -1222,6 +1222,13 @@ def test_checkpoint_drops_a_running_mean_that_measured_something_else(tmp_path):
     save_file(tensors, str(tmp_path / "old.safetensors"), metadata=meta)
     old = load_checkpoint(tmp_path / "old.safetensors")
     assert old.running_tone is None and torch.equal(old.running_band, state.running_band)
+    # a term that was off when saved kept the running mean of when it was last on: stale, dropped (the link's too);
+    # the others are kept, whatever the override of the settings says
+    state.train = dataclasses.replace(state.train, tone_weight=0.0, link_weight=0.0)
+    state.running_link = 0.3
+    save_checkpoint(state, tmp_path / "off.safetensors")
+    off = load_checkpoint(tmp_path / "off.safetensors", dataclasses.replace(state.train, tone_weight=0.1, link_weight=1.0))
+    assert off.running_tone is None and off.running_link is None and torch.equal(off.running_band, state.running_band)
 
 
 def test_warm_running_starts_missing_running_means_from_fakes_and_keeps_the_rng():

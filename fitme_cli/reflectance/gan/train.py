@@ -1056,7 +1056,12 @@ def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainStat
     versions = json.loads(meta.get("running_versions", "{}"))
     for k in _RUNNING:  # checkpoints from before 2026-11-27 have none (``train`` then calls ``warm_running``)
         same = versions.get(k, 1) == _RUNNING_VERSIONS.get(k, 1)
-        setattr(state, k, tensors.get(f"running.{k}") if same else None)
+        # a term that was off kept the running mean of when it was last on: stale (the crown term's was 8 kimg old
+        # when it was turned on again at 186.00 kimg), so dropped, for ``warm_running`` to start it afresh
+        on = getattr(stored, f"{k.removeprefix('running_').replace('moments', 'moment_drift')}_weight") > 0
+        setattr(state, k, tensors.get(f"running.{k}") if same and on else None)
+    if stored.link_weight <= 0:
+        state.running_link = None
     return state
 
 
