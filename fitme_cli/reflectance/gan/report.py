@@ -275,15 +275,16 @@ def _detail_map_gaps(gan: torch.Tensor, real_a: torch.Tensor, real_b: torch.Tens
     and |log2 data A / data B| over the texels where data B has at least 5 % of its channel's mean detail (the map's
     borders and the eye holes have ~0), and G over data B over the crown's centre (rows R/128 to 5R/32, columns
     31R/64 to 35R/64: where G left a band without strands)."""
-    out = {}
     r = gan.shape[-1]
-    for c, name in enumerate(("albedo_luminance", "normals_x", "normals_y")):
-        keep = real_b[c] >= 0.05 * real_b[c].mean()
-        log = lambda a: float((a[c][keep].clamp_min(1e-12) / real_b[c][keep]).log2().abs().mean())  # noqa: E731
-        centre = (slice(r // 128, 5 * r // 32), slice(31 * r // 64, 35 * r // 64))
-        out[name] = {"gan_vs_heldout_half": round(log(gan), 4), "half_vs_half": round(log(real_a), 4),
-                     "crown_centre_gan_over_data": round(float(gan[c][centre].mean() / real_b[c][centre].mean()), 3)}
-    return out
+    centre = (slice(r // 128, 5 * r // 32), slice(31 * r // 64, 35 * r // 64))
+    keep = real_b >= 0.05 * real_b.mean((1, 2), keepdim=True)  # (3, R, R)
+
+    def log_gap(a: torch.Tensor, c: int) -> float:
+        return float((a[c][keep[c]].clamp_min(1e-12) / real_b[c][keep[c]]).log2().abs().mean())
+
+    return {name: {"gan_vs_heldout_half": round(log_gap(gan, c), 4), "half_vs_half": round(log_gap(real_a, c), 4),
+                   "crown_centre_gan_over_data": round(float(gan[c][centre].mean() / real_b[c][centre].mean()), 3)}
+            for c, name in enumerate(("albedo_luminance", "normals_x", "normals_y"))}
 
 
 def _crown(gan: torch.Tensor, real: torch.Tensor) -> dict:

@@ -745,7 +745,8 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum: mean
 # TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the same over ``_tone_scale``;
-# tone_order: the same over ``_tone_order_scale``; detail_map: over ``_detail_map_scale``; beard, crown and mean_map: mean |running - target|
+# tone_order: the same over ``_tone_order_scale``; detail_map: over ``_detail_map_scale``; beard, crown and mean_map:
+# mean |running - target|
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
@@ -919,6 +920,8 @@ def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.
 # the tensor running means a checkpoint holds (the link's is a float, in the metadata): the moment drift's and
 # each per-region term's, in ``_REGION_TERMS``' order
 _RUNNING = ("running_moments", *(f"running_{term}" for term in _REGION_TERMS))
+# each running mean's term weight: the term is on when it is > 0
+_RUNNING_WEIGHTS = {"running_moments": "moment_drift_weight", **{f"running_{term}": f"{term}_weight" for term in _REGION_TERMS}}
 # what each running mean measures, where it has changed (absent: 1); saved beside them, and a checkpoint's running
 # mean of another version is dropped on load, for ``warm_running`` to start again. Tone 2 (2026-11-28): the second
 # half is the within-batch variance, no longer the mean square. Resumed with the old mean squares (2.5 times the
@@ -1058,7 +1061,7 @@ def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainStat
         same = versions.get(k, 1) == _RUNNING_VERSIONS.get(k, 1)
         # a term that was off kept the running mean of when it was last on: stale (the crown term's was 8 kimg old
         # when it was turned on again at 186.00 kimg), so dropped, for ``warm_running`` to start it afresh
-        on = getattr(stored, f"{k.removeprefix('running_').replace('moments', 'moment_drift')}_weight") > 0
+        on = getattr(stored, _RUNNING_WEIGHTS[k]) > 0
         setattr(state, k, tensors.get(f"running.{k}") if same and on else None)
     if stored.link_weight <= 0:
         state.running_link = None
