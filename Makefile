@@ -44,6 +44,7 @@ bench: setup
 	$(BIN)/python benchmarks/bench_perception.py
 	$(BIN)/python benchmarks/bench_augment.py
 	$(BIN)/python benchmarks/bench_render.py
+	$(BIN)/python benchmarks/bench_gan_step.py
 	$(BIN)/python benchmarks/bench_fit.py --presets fast,default --views 1,3
 	$(BIN)/fitme bench --quick -o out/bench
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -17,7 +17,7 @@ from fitme_cli.reflectance.gan import ops
 from fitme_cli.reflectance.gan.ada import augment
 from fitme_cli.reflectance.gan.networks import (Discriminator, GanImages, GanSettings, Generator, ReflectanceMaps,
                                                 decode_maps, encode_maps)
-from fitme_cli.reflectance.gan.train import (TrainSettings, load_checkpoint, new_state, save_checkpoint, train,
+from fitme_cli.reflectance.gan.train import (TrainSettings, copy_generator, load_checkpoint, new_state, save_checkpoint, train,
                                              train_step)
 
 TINY = GanSettings(resolution=16, branch_resolution=8, channel_base=64, channel_max=16, z_dim=32, w_dim=32)
@@ -1133,6 +1133,30 @@ def test_spectrum_weight_moves_the_fakes_grain_spectrum_and_branch_noise_is_set(
         set_branch_noise(state, float("nan"))
 
 
+@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")), reason="torch.compile needs a C++ compiler")
+@pytest.mark.filterwarnings("ignore:`torch.jit.script_method` is deprecated:DeprecationWarning")  # torch's own, compiling
+def test_compile_synthesis_matches_eager_values_and_gradients_and_keeps_the_state_dict():
+    from fitme_cli.reflectance.gan.train import compile_synthesis
+
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, channels_last=False))
+    ref = copy_generator(state.G).requires_grad_(True)
+    keys = list(state.G.state_dict())
+    compile_synthesis(state)
+    assert list(state.G.state_dict()) == keys  # checkpoints of a compiled run are the same files
+    ws = state.G.ws(torch.randn(3, TINY.z_dim)).detach()
+    got = {}
+    for G in (state.G, ref):  # "const" noise: inductor draws its own random numbers, not eager's
+        out = G.synthesis(ws, noise_mode="const").cat()
+        (out * torch.linspace(-1, 1, out.numel()).view(out.shape)).sum().backward()
+        got[G is ref] = (out.detach(), {n: p.grad.clone() for n, p in G.synthesis.named_parameters() if p.grad is not None})
+    torch.testing.assert_close(got[False][0], got[True][0], rtol=1e-4, atol=1e-5)
+    assert got[False][1].keys() == got[True][1].keys() and len(got[True][1]) > 10
+    scale = max(g.abs().max().item() for g in got[True][1].values())  # sums over texels: float order shows at ~1e-7
+    for n, g in got[True][1].items():
+        torch.testing.assert_close(got[False][1][n], g, rtol=1e-4, atol=1e-6 * scale)
+    assert torch.equal(state.G.synthesis.mean_image, ref.synthesis.mean_image)
+
+
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
     data = _tiny_data()
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
@@ -1850,6 +1874,16 @@ def test_dataset_loads_into_network_space(dataset_dir):
     torch.testing.assert_close(back.normals[0], phys[4:], atol=2e-3, rtol=1e-2)
 
 
+def test_train_compile_without_a_compiler_is_a_clean_usage_error(dataset_dir, tmp_path, monkeypatch):
+    from fitme_cli.cli import main
+
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "run"), "--resolution", "16",
+                                  "--compile", "--kimg", "0.004"])
+    assert r.exit_code == 2 and "--compile needs a C++ compiler" in r.output
+    assert not (tmp_path / "run").exists()  # refused before anything is written
+
+
 def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path):
     from fitme_cli.cli import main
 
@@ -1909,12 +1943,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     base = [a for a in args[:-6] if a not in ("--channel-base", "64")]
     r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--kimg", "0.02", "--resume", "--threads", "1"])
     assert r.exit_code == 0, r.output
-    assert "widened: 8x8 8 -> 16, 16x16 4 -> 8 channels" in r.output
+    assert "widened: G's 8x8 8 -> 16, G's 16x16 4 -> 8, D's 8x8 8 -> 16, D's 16x16 4 -> 8 channels" in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     assert state.gan.channel_base == 128 and state.nimg == 20
     assert json.loads((run / "config.json").read_text())["gan"]["channel_base"] == 128
     r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--resolution", "32", "--kimg", "0.024", "--resume"])
-    assert r.exit_code == 2 and "only --channel-base and --channel-max may grow" in r.output
+    assert r.exit_code == 2 and "only --channel-base, --channel-max and --g-channel-min may grow" in r.output
     r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--d-joint-branch", "--kimg", "0.024", "--resume",
                                   "--threads", "1"])
     assert r.exit_code == 0, r.output
@@ -1927,6 +1961,15 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 0, r.output
     assert "running means started from 16 batches of fakes: moments, link, coherence, band, spectrum, relief, colour" in r.output
     assert load_checkpoint(run / "checkpoint.safetensors").train.drift_on_ema is True
+    # --g-channel-min widens G's top layers and not D's
+    r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--g-channel-min", "16", "--kimg", "0.032",
+                                  "--resume", "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "widened: G's 16x16 8 -> 16 channels" in r.output
+    state = load_checkpoint(run / "checkpoint.safetensors")
+    assert state.gan.g_channel_min == 16 and state.nimg == 32
+    assert state.G.synthesis.branches["albedo"]["b16"].conv1.weight.shape[:2] == (16, 16)
+    assert state.D.albedo_branch.blocks[0].conv0.weight.shape[0] == 8  # D at 16x16 keeps its 8
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "other"), "--resume"])
     assert r.exit_code == 10 and "nothing to resume" in r.output
     r = CliRunner().invoke(main, ["train", str(tmp_path / "missing"), "-o", str(tmp_path / "x"), "--resolution", "16"])
@@ -2390,6 +2433,30 @@ def test_widening_keeps_what_g_and_d_compute_and_trains_the_new_channels():
     assert sum(p.numel() for g in wide.opt_G.param_groups for p in g["params"]) == sum(p.numel() for p in wide.G.parameters())
 
 
+def test_g_channel_min_widens_g_top_layers_only_and_keeps_what_g_computes():
+    from fitme_cli.reflectance.gan.widen import widen_state
+
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, channels_last=False))
+    with torch.no_grad():
+        for p in state.G.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+        state.G_ema.load_state_dict(state.G.state_dict())
+    floor = dataclasses.replace(TINY, g_channel_min=8)  # G's 16x16: 4 -> 8; 4x4 and 8x8 already have 16 and 8
+    assert [floor.g_channels(r) for r in floor.resolutions] == [16, 8, 8]
+    assert [floor.channels(r) for r in floor.resolutions] == [TINY.channels(r) for r in TINY.resolutions] == [16, 8, 4]
+    wide = widen_state(state, floor)
+    assert wide.G.synthesis.branches["albedo"]["b16"].conv1.weight.shape[:2] == (8, 8)
+    assert {k: v.shape for k, v in wide.D.state_dict().items()} == {k: v.shape for k, v in state.D.state_dict().items()}
+    z = torch.randn(3, TINY.z_dim)
+    with torch.no_grad():
+        torch.testing.assert_close(wide.G_ema(z, noise_mode="const").cat(), state.G_ema(z, noise_mode="const").cat(),
+                                   rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match=r"channels can only grow: G's 8 -> 4 at 16x16"):
+        widen_state(wide, TINY)
+    with pytest.raises(ValueError, match="g_channel_min must be >= 1, got 0"):
+        dataclasses.replace(TINY, g_channel_min=0)
+
+
 def test_adding_the_joint_branch_keeps_d_and_trains_it():
     from fitme_cli.reflectance.gan.widen import widen_state
 
@@ -2416,7 +2483,7 @@ def test_widening_refuses_what_it_cannot_do():
     state = new_state(TINY, TrainSettings(batch=4, kimg=1))
     with pytest.raises(ValueError, match="only the channels can grow on a trained run; resolution would change"):
         widen_state(state, dataclasses.replace(TINY, resolution=32))
-    with pytest.raises(ValueError, match=r"channels can only grow: 16 -> 8 at 4x4"):
+    with pytest.raises(ValueError, match=r"channels can only grow: D's 16 -> 8 at 4x4"):
         widen_state(state, dataclasses.replace(TINY, channel_max=8))
     with pytest.raises(ValueError, match="cannot widen"):
         widen_module(Generator(dataclasses.replace(TINY, channel_base=128)), Generator(TINY))

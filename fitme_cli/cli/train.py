@@ -40,7 +40,8 @@ def _stop_requests():
 
 
 # flag -> (settings class name, field)
-_GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "mapping_layers", "d_joint_branch")
+_GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "g_channel_min", "mapping_layers",
+              "d_joint_branch")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
@@ -57,6 +58,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--branch-resolution", type=int, help="Blocks from this resolution up are per modality. [256]")
 @click.option("--channel-base", type=int, help="Channels at resolution r: min(base / r, max); may grow on --resume. [2048]")
 @click.option("--channel-max", type=int, help="May grow on --resume. [128]")
+@click.option("--g-channel-min", type=click.IntRange(min=1),
+              help="A floor on G's channels at every resolution (widens G's top layers, not D's); may grow on --resume. [1]")
 @click.option("--mapping-layers", type=int, help="[2]")
 @click.option("--d-joint-branch/--no-d-joint-branch", default=None,
               help="A third D branch that sees albedos and normals together (not in the paper); may be added on --resume. [off]")
@@ -144,13 +147,16 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--seed", type=int, help="[0]")
 @click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
+@click.option("--compile", "compile_g", is_flag=True,
+              help="torch.compile G's synthesis: ~1.3x faster training steps on CPU after a minute of "
+                   "compiling; needs a C++ compiler; a compiled run does not resume bit-exactly.")
 def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, limit: int | None, threads: int | None,
-            branch_noise: float | None, **flags) -> None:
+            branch_noise: float | None, compile_g: bool, **flags) -> None:
     """Train BRDF-GAN on DATA_DIR (NAME_albedo/_specular/_normals maps, PNG or EXR).
 
     Every --snapshot-kimg it writes RUN_DIR/samples/kimgNNNN.NN.png (8 rows of A_D | A_S | N_S for fixed
     latents), appends to RUN_DIR/metrics.jsonl and saves RUN_DIR/checkpoint.safetensors, from which
-    --resume continues exactly. Ctrl-C or SIGTERM (kill) ends the current step and saves a checkpoint;
+    --resume continues exactly (without --compile). Ctrl-C or SIGTERM (kill) ends the current step and saves a checkpoint;
     a second Ctrl-C stops at once.
 
     \b
@@ -168,12 +174,18 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..reflectance.gan.data import load_dataset, load_regions
     from ..reflectance.gan.metrics import detail_region
     from ..reflectance.gan.networks import GanSettings
-    from ..reflectance.gan.train import (TrainSettings, clear_running, load_checkpoint, new_state, reset_mean_image,
-                                         save_checkpoint, set_branch_noise, set_learning_rates, train)
+    from ..reflectance.gan.train import (TrainSettings, clear_running, compile_synthesis, load_checkpoint, new_state,
+                                         reset_mean_image, save_checkpoint, set_branch_noise, set_learning_rates, train)
 
     from ..reflectance.gan.data import find_samples
 
     find_samples(data_dir)  # a missing or empty data folder fails before anything else
+    if compile_g:
+        import shutil
+
+        if not any(shutil.which(c) for c in ("g++", "c++", "clang++")):
+            raise click.UsageError("--compile needs a C++ compiler (g++ or clang++) on PATH for torch.compile's CPU "
+                                   "backend; train without --compile")
     if threads:
         torch.set_num_threads(threads)
     cfg: dict[str, dict] = {"gan": {}, "train": {}}
@@ -239,10 +251,11 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             try:
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
-                raise click.BadParameter(f"{e} (on --resume only --channel-base and --channel-max may grow, "
-                                         "and --d-joint-branch be added)") from None
-            grew = [f"{r}x{r} {before.channels(r)} -> {state.gan.channels(r)}" for r in before.resolutions
-                    if before.channels(r) != state.gan.channels(r)]
+                raise click.BadParameter(f"{e} (on --resume only --channel-base, --channel-max and --g-channel-min may "
+                                         "grow, and --d-joint-branch be added)") from None
+            grew = [f"{who}'s {r}x{r} {old(r)} -> {new(r)}" for who, old, new in
+                    (("G", before.g_channels, state.gan.g_channels), ("D", before.channels, state.gan.channels))
+                    for r in before.resolutions if old(r) != new(r)]
             if grew:
                 click.echo(f"widened: {', '.join(grew)} channels", err=True)
             if state.gan.d_joint_branch and not before.d_joint_branch:
@@ -282,6 +295,9 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     if branch_noise is not None:
         set_branch_noise(state, branch_noise)
         click.echo(f"branched layers' noise strength set to {branch_noise}", err=True)
+    if compile_g:
+        compile_synthesis(state)
+        click.echo("G's synthesis is compiled on the first G and D steps (about a minute each)", err=True)
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
                f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
     with _stop_requests() as stops:
@@ -295,7 +311,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     if stops:
         save_checkpoint(state, ckpt)
         name = signal.Signals(stops[0]).name
-        click.echo(f"stopped by {name}: checkpoint saved at {state.nimg / 1000:.2f} kimg; --resume continues exactly",
+        how = "from there (compiled, so not bit-exactly)" if compile_g else "exactly"
+        click.echo(f"stopped by {name}: checkpoint saved at {state.nimg / 1000:.2f} kimg; --resume continues {how}",
                    err=True)
         raise SystemExit(128 + stops[0])
     click.echo(f"done: {state.nimg / 1000:.2f} kimg in {state.wall_time / 3600:.2f} h of training; {ckpt}")

@@ -42,6 +42,9 @@ class GanSettings:
     mapping_lr_mul: float = 0.01
     channel_base: int = 2048  # channels at resolution r: min(channel_base // r, channel_max)
     channel_max: int = 128
+    # A floor on G's channels only: it widens G's top layers and leaves D's. G's 16 channels at 256² may be too
+    # few to draw the data's hair strands; a wider D at 256² costs ~3x per step on 2 cores (docs/brdf_gan.md).
+    g_channel_min: int = 1
     conv_clamp: float | None = 256.0
     w_avg_beta: float = 0.995  # the tracked W average (for truncation and for the fitting's start)
     specular_offset: float = 0.1  # network-space encodings (module docstring); part of the model
@@ -57,11 +60,18 @@ class GanSettings:
             r = getattr(self, name)
             if r < 8 or r & (r - 1):
                 raise ValueError(f"{name} must be a power of two >= 8, got {r}")
+        if self.g_channel_min < 1:
+            raise ValueError(f"g_channel_min must be >= 1, got {self.g_channel_min}")
         if self.branch_resolution > self.resolution:
             raise ValueError(f"branch_resolution ({self.branch_resolution}) exceeds resolution ({self.resolution})")
 
     def channels(self, res: int) -> int:
+        """D's channels at resolution ``res``."""
         return max(1, min(self.channel_base // res, self.channel_max))
+
+    def g_channels(self, res: int) -> int:
+        """G's channels at resolution ``res``."""
+        return max(self.g_channel_min, self.channels(res))
 
     @property
     def resolutions(self) -> list[int]:
@@ -257,12 +267,12 @@ class SynthesisNetwork(nn.Module):
     def __init__(self, s: GanSettings):
         super().__init__()
         self.s = s
-        self.const = nn.Parameter(torch.randn(s.channels(4), 4, 4))
+        self.const = nn.Parameter(torch.randn(s.g_channels(4), 4, 4))
         self.register_buffer("mean_image", torch.zeros(N_CHANNELS, s.resolution, s.resolution))
         self.trunk = nn.ModuleDict()
         self.branches = nn.ModuleDict({name: nn.ModuleDict() for name, _ in MODALITIES})
         for res in s.resolutions:
-            c_in, c_out = s.channels(max(res // 2, 4)), s.channels(res)
+            c_in, c_out = s.g_channels(max(res // 2, 4)), s.g_channels(res)
             if res < s.branch_resolution:
                 self.trunk[f"b{res}"] = _SynthesisBlock(c_in, c_out, N_CHANNELS, res, s)
             else:

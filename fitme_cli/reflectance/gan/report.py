@@ -21,7 +21,7 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       interpolation_smoothness, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
-from .networks import GanImages, Generator, ReflectanceMaps, decode_maps, encode_maps
+from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
 
@@ -48,7 +48,7 @@ class _Stats:
 
 
 def _batches(G: Generator, data: torch.Tensor | None, n: int, seed: int, batch: int = 32, truncation_psi: float = 1.0):
-    """Physical (b, 7, R, R) batches: generated (data None) or decoded from the data tensor."""
+    """(network space, physical) pairs of (b, 7, R, R) float batches: generated (data None) or the data's."""
     z = sample_z(n, G.settings.z_dim, seed) if data is None else None
     with torch.no_grad():
         for i in range(0, n, batch):
@@ -56,7 +56,7 @@ def _batches(G: Generator, data: torch.Tensor | None, n: int, seed: int, batch: 
             imgs = G(z[i : i + k], truncation_psi=truncation_psi, noise_mode="random") if data is None \
                 else GanImages.split(data[i : i + k].float())
             m = decode_maps(imgs, G.settings)
-            yield torch.cat([m.albedo, m.specular, m.normals], 1)
+            yield imgs.cat(), torch.cat([m.albedo, m.specular, m.normals], 1)
 
 
 def _encoded(stats_mean, stats_std):
@@ -94,13 +94,13 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     brow edges carved in (``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``); ``beard``: ``data.beard_zone``."""
     st, fs, cm, sp, hz, sd, rl, mo, fb, bs, cr = _Stats(mapped), [], [], [], [], [], [], [], [], [], []
     sums, dsums, counts, seen = [0.0, 0.0], [0.0, 0.0], [0, 0], 0
-    for x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
+    for net, x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
-        for j, part in enumerate((x[: max(n // 2 - seen, 0)], x[max(n // 2 - seen, 0):])):
+        half = max(n // 2 - seen, 0)
+        for j, (part, part_net) in enumerate(((x[:half], net[:half]), (x[half:], net[half:]))):
             sums[j] = sums[j] + part.double().sum(0)
             if len(part):  # in network space, as the detail-map term measures it
-                net = encode_maps(ReflectanceMaps(part[:, :3], part[:, 3:4], part[:, 4:]), G.settings).cat()
-                dsums[j] = dsums[j] + detail_map(net).double().sum(0)
+                dsums[j] = dsums[j] + detail_map(part_net).double().sum(0)
             counts[j] += len(part)
         seen += len(x)
         fs.append(reflectance_features(x, regions))
@@ -389,7 +389,7 @@ def spectrum_figure(G: Generator, data: torch.Tensor, regions: torch.Tensor, n: 
     frequency at each panel's centre, the corners are (1/2, 1/2) cycles per texel. A lattice is a spot."""
     import cv2
 
-    spectra = [torch.cat([region_spectrum(x[:, :3].mean(1), regions) for x in _batches(G, src, n, 5, truncation_psi=truncation_psi)]).mean(0)
+    spectra = [torch.cat([region_spectrum(x[:, :3].mean(1), regions) for _, x in _batches(G, src, n, 5, truncation_psi=truncation_psi)]).mean(0)
                for src in (data[:n], None)]
     rows = []
     for j, lab in enumerate(region_labels(regions)):

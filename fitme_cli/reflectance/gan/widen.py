@@ -65,15 +65,18 @@ def widen_state(state, gan: GanSettings):
     Counters, ADA and train settings carry over; both Adam states start fresh (their shapes changed)."""
     from .train import new_state
 
-    fixed = {f.name for f in dataclasses.fields(GanSettings)} - {"channel_base", "channel_max", "d_joint_branch"}
+    grows = {"channel_base", "channel_max", "g_channel_min", "d_joint_branch"}
+    fixed = {f.name for f in dataclasses.fields(GanSettings)} - grows
     changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
     if changed:
         raise ValueError(f"only the channels can grow on a trained run; {', '.join(changed)} would change")
     if state.gan.d_joint_branch and not gan.d_joint_branch:
         raise ValueError("D's joint branch cannot be removed from a run that has one (its trained weights would be lost)")
     for r in state.gan.resolutions:
-        if gan.channels(r) < state.gan.channels(r):
-            raise ValueError(f"channels can only grow: {state.gan.channels(r)} -> {gan.channels(r)} at {r}x{r}")
+        for who, old, new in (("D", state.gan.channels(r), gan.channels(r)),
+                              ("G", state.gan.g_channels(r), gan.g_channels(r))):
+            if new < old:
+                raise ValueError(f"channels can only grow: {who}'s {old} -> {new} at {r}x{r}")
     rng = torch.get_rng_state()
     out = new_state(gan, state.train)  # seeds torch with the run's seed for the new channels' init ...
     torch.set_rng_state(rng)  # ... then the resumed run goes on with its own random stream
