@@ -17,8 +17,8 @@ from fitme_cli.reflectance.gan import ops
 from fitme_cli.reflectance.gan.ada import augment
 from fitme_cli.reflectance.gan.networks import (Discriminator, GanImages, GanSettings, Generator, ReflectanceMaps,
                                                 decode_maps, encode_maps)
-from fitme_cli.reflectance.gan.train import (TrainSettings, copy_generator, load_checkpoint, new_state, save_checkpoint, train,
-                                             train_step)
+from fitme_cli.reflectance.gan.train import (TrainSettings, copy_generator, load_checkpoint, new_state, save_checkpoint,
+                                             train, train_step)
 
 TINY = GanSettings(resolution=16, branch_resolution=8, channel_base=64, channel_max=16, z_dim=32, w_dim=32)
 
