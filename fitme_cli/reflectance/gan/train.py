@@ -337,9 +337,10 @@ def compile_synthesis(state: TrainState) -> None:
 
     Measured on 2 CPU cores, batch 4, width 4096 (docs/brdf_gan.md): G's forward + backward 0.36 -> 0.25 s,
     and 1.4 -> 0.64 s with ``g_channel_min`` 32, where unfused element-wise ops on 33 MB activations dominate;
-    a whole training step 1.73 -> 2.27 images/s there. The first G step and the first D step each compile
-    (~30-70 s). D is left eager: R1's double backward is not supported compiled, and D's time is in its convs.
-    Numerics are those of a reordered float computation, so a compiled run does not resume bit-exactly.
+    whole training steps 1.84 -> 2.53 images/s there, 2.14 -> 2.81 at 16 (`benchmarks/bench_gan_step.py`). The
+    first G step and the first D step each compile (~30-70 s). D is left eager: R1's double backward is not
+    supported compiled, and D's time is in its convs. Numerics are those of a reordered float computation, and
+    inductor draws its own noise, so a compiled run does not resume bit-exactly.
     Needs a C++ compiler (inductor's CPU backend). The state dict is untouched: only ``forward`` is wrapped."""
     syn = state.G.synthesis
     # the class's forward bound to this module: a second call compiles afresh rather than wrapping the wrapper
