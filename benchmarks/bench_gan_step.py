@@ -8,13 +8,12 @@ compiling wins back. Random inputs, no drift terms (they add ~20 % in the real r
 from __future__ import annotations
 
 import argparse
-import shutil
 import time
 
 import torch
 
 from fitme_cli.reflectance.gan.networks import GanSettings
-from fitme_cli.reflectance.gan.train import TrainSettings, compile_synthesis, new_state, train_step
+from fitme_cli.reflectance.gan.train import TrainSettings, can_compile, compile_synthesis, new_state, train_step
 
 
 def step_rate(g_channel_min: int, compiled: bool, steps: int, batch: int) -> tuple[float, float, float]:
@@ -44,7 +43,7 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     modes = [m.strip() == "on" for m in a.compile.split(",")]
-    if any(modes) and not any(shutil.which(c) for c in ("g++", "c++", "clang++")):
+    if any(modes) and not can_compile():
         print("no C++ compiler: compiled rows skipped")
         modes = [m for m in modes if not m]
     print(f"BRDF-GAN training step, 256², batch {a.batch}, {a.threads} threads, {a.steps} timed steps")

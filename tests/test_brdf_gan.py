@@ -17,8 +17,8 @@ from fitme_cli.reflectance.gan import ops
 from fitme_cli.reflectance.gan.ada import augment
 from fitme_cli.reflectance.gan.networks import (Discriminator, GanImages, GanSettings, Generator, ReflectanceMaps,
                                                 decode_maps, encode_maps)
-from fitme_cli.reflectance.gan.train import (TrainSettings, copy_generator, load_checkpoint, new_state, save_checkpoint,
-                                             train, train_step)
+from fitme_cli.reflectance.gan.train import (TrainSettings, can_compile, copy_generator, load_checkpoint, new_state,
+                                             save_checkpoint, train, train_step)
 
 TINY = GanSettings(resolution=16, branch_resolution=8, channel_base=64, channel_max=16, z_dim=32, w_dim=32)
 
@@ -1133,7 +1133,7 @@ def test_spectrum_weight_moves_the_fakes_grain_spectrum_and_branch_noise_is_set(
         set_branch_noise(state, float("nan"))
 
 
-@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")), reason="torch.compile needs a C++ compiler")
+@pytest.mark.skipif(not can_compile(), reason="torch.compile needs a C++ compiler")
 @pytest.mark.filterwarnings("ignore:`torch.jit.script_method` is deprecated:DeprecationWarning")  # torch's own, compiling
 def test_compile_synthesis_matches_eager_values_and_gradients_and_keeps_the_state_dict():
     from fitme_cli.reflectance.gan.train import compile_synthesis

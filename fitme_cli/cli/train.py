@@ -156,8 +156,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
 
     Every --snapshot-kimg it writes RUN_DIR/samples/kimgNNNN.NN.png (8 rows of A_D | A_S | N_S for fixed
     latents), appends to RUN_DIR/metrics.jsonl and saves RUN_DIR/checkpoint.safetensors, from which
-    --resume continues exactly (without --compile). Ctrl-C or SIGTERM (kill) ends the current step and saves a checkpoint;
-    a second Ctrl-C stops at once.
+    --resume continues exactly (without --compile). Ctrl-C or SIGTERM (kill) ends the current step and saves a
+    checkpoint; a second Ctrl-C stops at once.
 
     \b
     Example:
@@ -174,18 +174,16 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..reflectance.gan.data import load_dataset, load_regions
     from ..reflectance.gan.metrics import detail_region
     from ..reflectance.gan.networks import GanSettings
-    from ..reflectance.gan.train import (TrainSettings, clear_running, compile_synthesis, load_checkpoint, new_state,
-                                         reset_mean_image, save_checkpoint, set_branch_noise, set_learning_rates, train)
+    from ..reflectance.gan.train import (TrainSettings, can_compile, clear_running, compile_synthesis, load_checkpoint,
+                                         new_state, reset_mean_image, save_checkpoint, set_branch_noise,
+                                         set_learning_rates, train)
 
     from ..reflectance.gan.data import find_samples
 
     find_samples(data_dir)  # a missing or empty data folder fails before anything else
-    if compile_g:
-        import shutil
-
-        if not any(shutil.which(c) for c in ("g++", "c++", "clang++")):
-            raise click.UsageError("--compile needs a C++ compiler (g++ or clang++) on PATH for torch.compile's CPU "
-                                   "backend; train without --compile")
+    if compile_g and not can_compile():
+        raise click.UsageError("--compile needs a C++ compiler (g++ or clang++) on PATH for torch.compile's CPU "
+                               "backend; train without --compile")
     if threads:
         torch.set_num_threads(threads)
     cfg: dict[str, dict] = {"gan": {}, "train": {}}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import shutil
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -31,7 +32,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
            "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
-           "set_branch_noise", "clear_running", "compile_synthesis"]
+           "set_branch_noise", "clear_running", "can_compile", "compile_synthesis"]
 
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
@@ -332,6 +333,11 @@ def copy_generator(G: Generator) -> Generator:
     return G2.eval().requires_grad_(False)
 
 
+def can_compile() -> bool:
+    """Whether ``compile_synthesis`` can work here: inductor's CPU backend needs a C++ compiler on PATH."""
+    return any(shutil.which(c) for c in ("g++", "c++", "clang++"))
+
+
 def compile_synthesis(state: TrainState) -> None:
     """Run G's synthesis (the trained one, not G_ema) through ``torch.compile`` for the rest of this process.
 
@@ -341,7 +347,7 @@ def compile_synthesis(state: TrainState) -> None:
     first G step and the first D step each compile (~30-70 s). D is left eager: R1's double backward is not
     supported compiled, and D's time is in its convs. Numerics are those of a reordered float computation, and
     inductor draws its own noise, so a compiled run does not resume bit-exactly.
-    Needs a C++ compiler (inductor's CPU backend). The state dict is untouched: only ``forward`` is wrapped."""
+    Needs a C++ compiler (``can_compile``). The state dict is untouched: only ``forward`` is wrapped."""
     syn = state.G.synthesis
     # the class's forward bound to this module: a second call compiles afresh rather than wrapping the wrapper
     syn.forward = torch.compile(type(syn).forward.__get__(syn), dynamic=False)
