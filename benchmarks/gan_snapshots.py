@@ -11,6 +11,9 @@ Measures (192 latents, seed 11, constant noise, against the data's first 512 map
   10th / 50th / 90th percentiles beside the data's. The sampling error of the ratio is ~0.05.
 - skin+forehead std, band: the mean within-region std and finest Laplacian band RMS of the linear albedo, G over data.
 - beards: the share of samples whose beard zone is at least 0.6 and 0.3 hair (``metrics.hair_share``).
+- added channels (only where ``g_channel_min`` widened G): the RMS of the weights of each branch's top ``conv1`` and
+  ``to_image`` that read the channels the floor added, over the RMS of those reading the others. Widening starts them
+  at 0 (gan/widen.py); the old ones' size is what the trained channels' weights have.
 A single snapshot of the training G swings (its detail by +-20 % between snapshots 0.25 kimg apart, 2026-11-27):
 compare G_ema, which ships, unless asking about the training G itself.
 """
@@ -34,6 +37,23 @@ def _measure(albedo: torch.Tensor, regions: torch.Tensor, zone: torch.Tensor) ->
     moments = region_moments(albedo, regions)  # (N, k, 2, 3)
     return {"tone": moments[:, labels.index(_SKIN), 0].mean(1), "std": moments[:, face, 1].mean((1, 2)),
             "band": region_band_energy(albedo, regions, 1)[:, face, 0].mean((1, 2)), "hair": hair_share(albedo, zone)}
+
+
+def _added_share(G, gan) -> str:
+    """'conv1 a / to_image b' (means over branches), or '' when no layer has floor-added channels."""
+    r = gan.resolution
+    old, new = gan.channels(r), gan.g_channels(r)
+    if new == old:
+        return ""
+    rms = lambda t: float(t.detach().pow(2).mean().sqrt())
+    shares = {"conv1": [], "to_image": []}
+    for name, w in G.synthesis.named_parameters():
+        layer = name.split(".")[-2] if "." in name else ""
+        if f".b{r}." in name and name.endswith(".weight") and layer in shares and w.ndim == 4:
+            rows = w[:old] if layer == "conv1" else w  # conv1's added outputs read old inputs through their own init
+            shares[layer].append(rms(rows[:, old:]) / rms(rows[:, :old]))
+    return "; added channels' weights, conv1 / to_image: " + " / ".join(
+        f"{sum(v) / len(v):.3f}" for v in shares.values())
 
 
 def _quantiles(x: torch.Tensor) -> str:
@@ -76,7 +96,8 @@ def main() -> None:
               f"band {float(m['band'].mean() / ref['band'].mean()):.3f}; "
               f"beards >= 0.6 / 0.3: {float((m['hair'] >= 0.6).double().mean()):.3f} / "
               f"{float((m['hair'] >= 0.3).double().mean()):.3f} "
-              f"(data {float((ref['hair'] >= 0.6).double().mean()):.3f} / {float((ref['hair'] >= 0.3).double().mean()):.3f})",
+              f"(data {float((ref['hair'] >= 0.6).double().mean()):.3f} / {float((ref['hair'] >= 0.3).double().mean()):.3f})"
+              f"{_added_share(G, state.gan)}",
               flush=True)
 
 

@@ -291,6 +291,50 @@ def test_set_learning_rates_after_a_resume_change():
     assert state.opt_D.param_groups[0]["lr"] == pytest.approx(0.0005 * 16 / 17)
 
 
+def test_top_layers_learning_rate_multiplier():
+    """G's output-resolution layers step g_top_lr_mul times further; Adam's groups keep G.parameters()' order
+    (checkpoints index Adam's state by it) and do not depend on the multiplier, so it may change on resume."""
+    from fitme_cli.reflectance.gan.train import set_learning_rates
+
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, g_lr=0.001, g_top_lr_mul=5.0))
+    G = state.G.double()  # float64: the mapping stores its weights x 100 (lr_mul), where float32 cannot resolve a step
+    groups = state.opt_G.param_groups
+    assert [id(p) for g in groups for p in g["params"]] == [id(p) for p in G.parameters()]
+    top = {id(p) for n, p in G.named_parameters() if ".b16." in n}
+    assert top and top == {id(p) for g in groups if g["top"] for p in g["params"]}
+    assert {g["lr"] for g in groups if g["top"]} == {0.005} and {g["lr"] for g in groups if not g["top"]} == {0.001}
+    before = {n: p.detach().clone() for n, p in G.named_parameters()}
+    gen = torch.Generator().manual_seed(0)
+    for p in G.parameters():
+        p.grad = torch.randn(p.shape, generator=gen, dtype=p.dtype) + 0.5  # no zero gradients
+    state.opt_G.step()
+    # Adam's first step with beta1 = 0 moves every element by lr * g / (|g| + eps): the group's rate
+    for n, p in G.named_parameters():
+        step = (p.detach() - before[n]).abs()
+        torch.testing.assert_close(step, torch.full_like(step, 0.005 if ".b16." in n else 0.001), rtol=1e-3, atol=0)
+    state.train = dataclasses.replace(state.train, g_top_lr_mul=1.0)
+    set_learning_rates(state)
+    assert {g["lr"] for g in state.opt_G.param_groups} == {0.001}
+    with pytest.raises(ValueError, match="g_top_lr_mul must be finite and > 0, got 0.0"):
+        TrainSettings(g_top_lr_mul=0.0)
+
+
+def test_top_layers_multiplier_resumes_a_checkpoint_saved_without_it(tmp_path):
+    """Adam's moment estimates survive a resume that turns the multiplier on."""
+    from fitme_cli.reflectance.gan.train import set_learning_rates
+
+    data = _tiny_data()
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1))
+    train_step(state, data[:4])
+    save_checkpoint(state, tmp_path / "c.safetensors")
+    back = load_checkpoint(tmp_path / "c.safetensors")
+    back.train = dataclasses.replace(back.train, g_top_lr_mul=3.0)
+    set_learning_rates(back)
+    assert {g["lr"] for g in back.opt_G.param_groups} == {0.0025, 0.0075}
+    for p, q in zip(state.G.parameters(), back.G.parameters()):
+        torch.testing.assert_close(back.opt_G.state[q]["exp_avg_sq"], state.opt_G.state[p]["exp_avg_sq"], rtol=0, atol=0)
+
+
 def test_ada_augment():
     x = torch.randn(4, 7, 16, 16, requires_grad=True)
     assert augment(x, 0.0) is x
@@ -1898,7 +1942,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 17 and "--resume" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
-                                  "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
+                                  "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
                                   "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--threads", "1"])
@@ -1911,6 +1955,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     # the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4
     assert state.train.g_lr == 0.001 and state.train.d_lr == 0.0025 and state.train.ada_target == 0.8
+    assert state.train.g_top_lr_mul == 4.0 and {g["lr"] for g in state.opt_G.param_groups} == {0.001, 0.004}
     assert state.train.ada_color is False and state.train.moment_weight == 10.0 and state.train.moment_drift_weight == 5.0
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert lines[-1]["loss_moment"] > 0 and lines[0]["loss_moment"] == 0  # recorded; 0 while the term was off
@@ -1930,7 +1975,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.spectrum_weight == 0.01 and lines[-1]["spectrum_gap"] == 0 and "spectrum_gap" not in lines[0]
     strengths = [float(p) for n, p in state.G_ema.named_parameters() if "branches" in n and n.endswith("noise_strength")]
     assert strengths and all(abs(v - 0.05) < 0.02 for v in strengths), strengths  # set, then a few steps of training
-    assert [g["lr"] for g in state.opt_G.param_groups] == [0.001]
+    assert {g["lr"] for g in state.opt_G.param_groups if not g["top"]} == {0.001}
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "h"), "--resolution", "16", "--hairline-region"])

@@ -42,7 +42,7 @@ def _stop_requests():
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "g_channel_min", "mapping_layers",
               "d_joint_branch")
-_TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "ema_kimg",
+_TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "g_top_lr_mul", "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
@@ -74,6 +74,9 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--snapshot-kimg", type=float, help="Grid, metrics and checkpoint every this many kimg. [1]")
 @click.option("--g-lr", type=float, help="[0.0025]")
 @click.option("--d-lr", type=float, help="[0.0025]")
+@click.option("--g-top-lr-mul", type=click.FloatRange(min=0, min_open=True),
+              help="G's layers at the output resolution train at this multiple of --g-lr, e.g. to let channels added by "
+                   "--g-channel-min catch up; may change on --resume (not in the paper). [1]")
 @click.option("--ema-kimg", type=click.FloatRange(min=0, min_open=True),
               help="Half-life of the generator EMA (the shipped G) in kimg. [batch * 10 / 32]")
 @click.option("--moment-weight", type=click.FloatRange(min=0),
@@ -221,8 +224,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # the run length, snapshot cadence, augmentation (on or off, its target, colour), learning rates and EMA
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
-        changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "moment_weight",
-                      "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
+        changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "g_top_lr_mul",
+                      "moment_weight", "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
                       "spectrum_weight", "relief_weight", "colour_weight", "beard_weight", "tone_weight", "crown_weight",
                       "mean_map_weight", "tone_order_weight", "detail_map_weight", "hairline_region", "side_regions", "eye_region",
                       "brow_edge_region", "drift_on_ema")

@@ -47,6 +47,11 @@ class TrainSettings:
     kimg: float = 40.0  # training length in thousands of real images shown to D
     g_lr: float = 0.0025
     d_lr: float = 0.0025
+    # not in the paper: G's layers at the output resolution train at this multiple of ``g_lr``. After
+    # ``--g-channel-min 32`` widened them at 186.00 kimg (gan/widen.py), the weights that read the new channels
+    # into the old outputs and into ``to_image`` start at zero, and 12 kimg at g_lr 0.0005 grew them to 3-4 % of
+    # the old ones' size (``to_image``: 0.012 against 0.30): a random walk, the new channels nearly silent
+    g_top_lr_mul: float = 1.0
     beta2: float = 0.99  # Adam betas are (0, beta2), as StyleGAN2
     r1_gamma: float = 3.0  # StyleGAN2-ADA's heuristic 0.0002 * R^2 / batch: 3.3 at 256^2, batch 4
     r1_interval: int = 16  # lazy regularisation
@@ -218,6 +223,8 @@ class TrainSettings:
             raise ValueError(f"kimg must be > 0, got {self.kimg}")
         if self.g_lr <= 0 or self.d_lr <= 0:
             raise ValueError(f"learning rates must be > 0, got g_lr={self.g_lr}, d_lr={self.d_lr}")
+        if not (self.g_top_lr_mul > 0 and math.isfinite(self.g_top_lr_mul)):
+            raise ValueError(f"g_top_lr_mul must be finite and > 0, got {self.g_top_lr_mul}")
         if self.ema_kimg is not None and self.ema_kimg <= 0:
             raise ValueError(f"ema_kimg must be > 0 or None (batch * 10 / 32), got {self.ema_kimg}")
         if not 0 < self.ada_target < 1:
@@ -366,9 +373,24 @@ def new_state(gan: GanSettings, train: TrainSettings, data_mean: torch.Tensor | 
         D.to(memory_format=torch.channels_last)
     G_ema = copy_generator(G)
     c = _lazy_r1_factor(train)
-    opt_G = torch.optim.Adam(G.parameters(), lr=train.g_lr, betas=(0.0, train.beta2), eps=1e-8)
+    opt_G = torch.optim.Adam(_g_param_groups(G, train), lr=train.g_lr, betas=(0.0, train.beta2), eps=1e-8)
     opt_D = torch.optim.Adam(D.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
     return TrainState(gan, train, G, D, G_ema, opt_G, opt_D)
+
+
+def _g_param_groups(G: Generator, train: TrainSettings) -> list[dict]:
+    """G's parameters as Adam groups: the contiguous runs of ``G.parameters()``, each flagged ``top`` when its
+    layers are at the output resolution (trained at ``g_lr * g_top_lr_mul``). Runs keep the parameter order
+    that checkpoints index Adam's state by, and the groups do not depend on the multiplier, so a resume may
+    change it (``set_learning_rates``)."""
+    tag = f".b{G.settings.resolution}."
+    groups: list[dict] = []
+    for name, p in G.named_parameters():
+        top = tag in name
+        if not groups or groups[-1]["top"] != top:
+            groups.append({"params": [], "top": top, "lr": train.g_lr * (train.g_top_lr_mul if top else 1.0)})
+        groups[-1]["params"].append(p)
+    return groups
 
 
 def _lazy_r1_factor(train: TrainSettings) -> float:
@@ -380,7 +402,7 @@ def set_learning_rates(state: TrainState) -> None:
     """Point both optimisers at ``state.train``'s learning rates (after a resume changed them); Adam's
     moment estimates are kept."""
     for group in state.opt_G.param_groups:
-        group["lr"] = state.train.g_lr
+        group["lr"] = state.train.g_lr * (state.train.g_top_lr_mul if group["top"] else 1.0)
     for group in state.opt_D.param_groups:
         group["lr"] = state.train.d_lr * _lazy_r1_factor(state.train)
 
