@@ -11,6 +11,8 @@ Measures (192 latents, seed 11, constant noise, against the data's first 512 map
   10th / 50th / 90th percentiles beside the data's. The sampling error of the ratio is ~0.05.
 - skin+forehead std, band: the mean within-region std and finest Laplacian band RMS of the linear albedo, G over data.
 - beards: the share of samples whose beard zone is at least 0.6 and 0.3 hair (``metrics.hair_share``).
+- band by tone: the same finest band on the samples in the data's darkest, middle and fairest third of skin tones
+  (the data's tercile bounds), G over data: whether G's detail follows the tone as the data's does.
 - added channels (only where ``g_channel_min`` widened G): the RMS of the weights of each branch's top ``conv1`` and
   ``to_image`` that read the channels the floor added, over the RMS of those reading the others. Widening starts them
   at 0 (gan/widen.py); the old ones' size is what the trained channels' weights have.
@@ -56,6 +58,15 @@ def _added_share(G, gan) -> str:
         f"{sum(v) / len(v):.3f}" for v in shares.values())
 
 
+def _band_by_tone(m: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> str:
+    """'a / b / c': the finest skin+forehead band, G over data, on the data's darkest, middle and fairest third."""
+    bounds = ref["tone"].double().quantile(torch.tensor([1 / 3, 2 / 3], dtype=torch.float64)).float()
+    thirds = lambda t: torch.bucketize(t, bounds)  # noqa: E731  0, 1, 2
+    g, d = thirds(m["tone"]), thirds(ref["tone"])
+    return " / ".join(f"{float(m['band'][g == k].mean() / ref['band'][d == k].mean()):.2f}" if bool((g == k).any())
+                      else "-" for k in range(3))
+
+
 def _quantiles(x: torch.Tensor) -> str:
     return "/".join(f"{float(v):.3f}" for v in x.double().quantile(torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64)))
 
@@ -93,7 +104,8 @@ def main() -> None:
               f"tone spread {float(m['tone'].std() / ref['tone'].std()):.3f}, "
               f"q10/50/90 {_quantiles(m['tone'])} (data {_quantiles(ref['tone'])}); "
               f"skin+forehead std {float(m['std'].mean() / ref['std'].mean()):.3f}, "
-              f"band {float(m['band'].mean() / ref['band'].mean()):.3f}; "
+              f"band {float(m['band'].mean() / ref['band'].mean()):.3f} (by tone, dark / mid / fair: "
+              f"{_band_by_tone(m, ref)}); "
               f"beards >= 0.6 / 0.3: {float((m['hair'] >= 0.6).double().mean()):.3f} / "
               f"{float((m['hair'] >= 0.3).double().mean()):.3f} "
               f"(data {float((ref['hair'] >= 0.6).double().mean()):.3f} / {float((ref['hair'] >= 0.3).double().mean()):.3f})"

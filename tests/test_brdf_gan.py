@@ -1000,6 +1000,69 @@ def test_region_moments_matches_reference_known_values_gradients_and_bad_input()
         region_moments(x, torch.full((r, r), 255, dtype=torch.uint8))
 
 
+def test_tone_bands_split_the_band_rms_by_the_batchs_tone_halves():
+    """Each sample's band RMS of the log albedo lands in the darker or the lighter half's entries by its skin tone's
+    rank in the batch, times 2: the batch mean is each half's mean; a tone's scale does not change it. The ranking carries no gradient; odd batches and regions without
+    skin or forehead are refused; the data target is taken over whole batches of the training size."""
+    from fitme_cli.reflectance.gan.metrics import region_band_energy
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _albedo_tone_bands, _data_target
+
+    regions = _two_regions()  # forehead (2) and neck (7)
+    g = torch.Generator().manual_seed(0)
+    albedo = 0.05 + 0.02 * torch.rand(4, 3, 16, 16, generator=g)
+    albedo = albedo * torch.tensor([4.0, 1.0, 6.0, 2.0]).view(4, 1, 1, 1)  # samples 1 and 3 the darker half
+    x = encode_maps(ReflectanceMaps(albedo, torch.full((4, 1, 16, 16), 0.1), torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1)
+                                    .expand(4, 3, 16, 16)), TINY).cat().requires_grad_(True)
+    out = _albedo_tone_bands(x, regions, 2)
+    bands = region_band_energy(decode_albedo(x[:, :3]).log(), regions, 2).flatten(1)
+    m = bands.shape[1]
+    assert out.shape == (4, 2 * m)
+    torch.testing.assert_close(out[[1, 3], :m], 2 * bands[[1, 3]])
+    torch.testing.assert_close(out[[0, 2], m:], 2 * bands[[0, 2]])
+    assert (out[[1, 3], m:] == 0).all() and (out[[0, 2], :m] == 0).all()
+    torch.testing.assert_close(out.mean(0)[:m], bands[[1, 3]].mean(0))
+    out.sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    # relative contrast: a sample's tone scaled by 1.3 (its rank kept) leaves its entries
+    brighter = encode_maps(ReflectanceMaps(albedo * torch.tensor([1.3, 1, 1, 1]).view(4, 1, 1, 1), torch.full((4, 1, 16, 16), 0.1),
+                                           torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(4, 3, 16, 16)), TINY).cat()
+    torch.testing.assert_close(_albedo_tone_bands(brighter, regions, 2), out.detach(), rtol=1e-4, atol=1e-5)
+    x64 = x.detach()[:2].double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: _albedo_tone_bands(t, regions, 1), (x64,))
+    with pytest.raises(ValueError, match="needs an even batch to halve, got 3"):
+        _albedo_tone_bands(x[:3], regions, 2)
+    no_face = torch.where(regions == 2, torch.tensor(5, dtype=torch.uint8), regions)
+    with pytest.raises(ValueError, match=r"needs a skin \(1\) or forehead \(2\) region"):
+        _albedo_tone_bands(x, no_face, 2)
+    data = _tiny_data(n=15)  # 3 whole batches of 4: the 15th sample left out
+    f = lambda y, r: _albedo_tone_bands(y, r, 2)  # noqa: E731
+    expected = torch.stack([f(data[i:i + 4].float(), regions).mean(0) for i in (0, 4, 8)]).mean(0)
+    torch.testing.assert_close(_data_target("tone_band", f, data, regions, 4), expected)
+
+
+def test_tone_band_weight_moves_the_fakes_bands(tmp_path):
+    """Pulled up, both halves' band RMS grows, pulled down it shrinks; it needs its regions and target, and bad
+    settings are refused."""
+    from fitme_cli.reflectance.gan.train import _albedo_tone_bands
+
+    data = _tiny_data()
+    regions = _two_regions()
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    measure = lambda y, r: _albedo_tone_bands(y, r, TrainSettings().band_levels)  # noqa: E731
+
+    def run(weight, scale):
+        base, now, out = _pulled("tone_band", weight, measure, lambda b: b * scale, regions, data, z)
+        return float((now / base).mean()), out
+
+    off, l_off = run(0.0, 1.0)
+    up, l_up = run(5.0, 6.0)  # without the term the grain grows about 4x in these steps, as the band term's test
+    down, _ = run(5.0, 0.5)
+    assert up > off * 1.2 and down < off / 1.2, (up, off, down)
+    assert "tone_band_gap" not in l_off[0] and l_up[0]["tone_band_gap"] == pytest.approx(5 / 6, abs=0.05)
+    _assert_region_term_refusals("tone_band", data, tmp_path)
+
+
 def test_colour_weight_moves_the_fakes_region_colour(tmp_path):
     """Same seed, same steps: with the colour term G's per-region albedo means move toward targets above and
     below where they start; it needs its regions and target, and bad settings are refused."""
@@ -1944,7 +2007,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
@@ -1968,6 +2031,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert lines[-1]["colour_gap"] >= 0 and "colour_gap" not in lines[0]
     assert state.train.mean_map_weight == 0.01 and lines[-1]["mean_map_gap"] > 0 and "mean_map_gap" not in lines[0]
     assert state.train.tone_order_weight == 0.1 and lines[-1]["tone_order_gap"] > 0 and "tone_order_gap" not in lines[0]
+    assert state.train.tone_band_weight == 0.5 and lines[-1]["tone_band_gap"] > 0 and "tone_band_gap" not in lines[0]
     assert state.train.detail_map_weight == 0.0001 and lines[-1]["detail_map_gap"] > 0 and "detail_map_gap" not in lines[0]
     ranks = state.running_tone_order.view(4, -1)  # batch 4's centred ranks, saved with the checkpoint
     assert bool((ranks.diff(dim=0) >= 0).all()) and float(ranks.sum(0).abs().max()) < 1e-5

@@ -46,7 +46,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
-                "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
+                "tone_band_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
 
 
 @click.command("train")
@@ -128,6 +128,10 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 @click.option("--detail-map-weight", type=click.FloatRange(min=0),
               help="Pull the running mean of where G's maps have fine detail, texel by texel, to the data's, against a "
                    "band without strands down the crown, whatever its sign (not in the paper; may change on --resume). [0]")
+@click.option("--tone-band-weight", type=click.FloatRange(min=0),
+              help="The band term's pull taken apart by skin tone: each region's band RMS of the log albedo on the darker and "
+                   "on the lighter half of each batch, against mottled dark skin and smooth fair skin (uses --band-levels; "
+                   "not in the paper; may change on --resume). [0]")
 @click.option("--hairline-region/--no-hairline-region", default=None,
               help="The per-region terms also measure the data's hairline as a region of its own, against a soft "
                    "hairline (not in the paper; may change on --resume). [off]")
@@ -227,8 +231,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "g_top_lr_mul",
                       "moment_weight", "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
                       "spectrum_weight", "relief_weight", "colour_weight", "beard_weight", "tone_weight", "crown_weight",
-                      "mean_map_weight", "tone_order_weight", "detail_map_weight", "hairline_region", "side_regions", "eye_region",
-                      "brow_edge_region", "drift_on_ema")
+                      "mean_map_weight", "tone_order_weight", "detail_map_weight", "tone_band_weight", "hairline_region",
+                      "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
         fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
                  and flags[k] != getattr(state.train, k)]
         if fixed:

@@ -38,7 +38,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
 # ``running_{term}`` in the state, and its measure in ``_region_measures``
 _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone", "crown", "mean_map", "tone_order",
-                 "detail_map")
+                 "detail_map", "tone_band")
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,8 @@ class TrainSettings:
     # not in the paper: G's layers at the output resolution train at this multiple of ``g_lr``. After
     # ``--g-channel-min 32`` widened them at 186.00 kimg (gan/widen.py), the weights that read the new channels
     # into the old outputs and into ``to_image`` start at zero, and 12 kimg at g_lr 0.0005 grew them to 3-4 % of
-    # the old ones' size (``to_image``: 0.012 against 0.30): a random walk, the new channels nearly silent
+    # the old ones' size (``to_image``: 0.012 against 0.30): a random walk, the new channels nearly silent. At 5 they
+    # grew as fast as a random walk at that rate would (0.062 -> 0.183 of the old ones' in 9.5 kimg, docs/brdf_gan.md)
     g_top_lr_mul: float = 1.0
     beta2: float = 0.99  # Adam betas are (0, beta2), as StyleGAN2
     r1_gamma: float = 3.0  # StyleGAN2-ADA's heuristic 0.0002 * R^2 / batch: 3.3 at 256^2, batch 4
@@ -183,6 +184,17 @@ class TrainSettings:
     # flag. 0: off (the paper)
     detail_map_weight: float = 0.0
     detail_map_beta: float = 0.99  # per-step decay of the running detail maps
+    # not in the paper: weight of the band term's pull taken apart by skin tone: each region's band RMS of the log
+    # albedo (``band_levels`` finest; relative contrast, which tones cannot meet) of the darker and of the lighter
+    # half of each batch, by the skin's mean albedo (``_albedo_tone_bands``). The band term matches each region's
+    # mean over all samples, which G met with too much detail on dark skin and too little on light: at 197.80 kimg
+    # the face's log-luminance bands at 1-4 texels were 1.19-1.34 of the data's on the darkest third of G_ema's
+    # samples and 0.62-0.77 on the fairest third (the person test's mottled dark faces; the data's freckles),
+    # 1.01-1.12 in between (docs/brdf_gan.md). At 0.5 from 201.00 to 207.27 kimg it met its own gap (0.236 -> 0.041)
+    # but overshot on dark faces' interiors (0.65-0.72 of the data's) and jolted the tones (the card's tone distance
+    # 0.0064 -> 0.0114); not in the committed state. 0: off (the paper)
+    tone_band_weight: float = 0.0
+    tone_band_beta: float = 0.99  # per-step decay of the running half-batch band RMS
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -332,6 +344,10 @@ class TrainState:
     # running ones; derived and saved like the link's
     detail_map_target: torch.Tensor | None = None
     running_detail_map: torch.Tensor | None = None
+    # (2 * k * levels * 3,) float32: the data's per-region band RMS of a batch's darker and lighter half
+    # (``_albedo_tone_bands``), the tone-band term's target, and G's running ones; derived and saved like the link's
+    tone_band_target: torch.Tensor | None = None
+    running_tone_band: torch.Tensor | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -457,6 +473,17 @@ def update_running(running: torch.Tensor | None, moments: torch.Tensor, beta: fl
     return moments.clone() if running is None else running.lerp(moments, 1 - beta)
 
 
+def _data_target(term: str, measure: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], data: torch.Tensor,
+                 regions: torch.Tensor, batch: int) -> torch.Tensor:
+    """A per-region term's target: the mean of its measure over the first 512 data samples, in chunks of 64, or of
+    ``batch`` for the tone-band term, whose halves are a training batch's; the tone-order term's exact expectation."""
+    if term == "tone_order":
+        return data_tone_order(data, regions, batch)
+    if term == "tone_band":  # whole batches only
+        return _data_mean(lambda x: measure(x, regions), data, min(512, len(data)) // batch * batch, batch)
+    return _data_mean(lambda x: measure(x, regions), data, 512, 64)
+
+
 def _data_mean(measure: Callable[[torch.Tensor], torch.Tensor], data: torch.Tensor, n: int, chunk: int) -> torch.Tensor:
     """The mean over the first n data samples of ``measure`` ((B, 7, R, R) -> (B, ...)), in chunks. A last chunk of one
     sample joins the one before it: ``_albedo_tone`` measures each sample against its batch."""
@@ -502,6 +529,29 @@ def _albedo_bands(x: torch.Tensor, regions: torch.Tensor, levels: int) -> torch.
     finest band was 0.93 of the data's sRGB-encoded but 0.70 linear (G's and the data's tones differ, so the
     encoding's slope does too)."""
     return region_band_energy(decode_albedo(x[:, :3]), regions, levels).flatten(1)
+
+
+def _albedo_tone_bands(x: torch.Tensor, regions: torch.Tensor, levels: int) -> torch.Tensor:
+    """(B, 7, R, R) network space, B even -> (B, 2 * k * levels * 3): each sample's per-region band RMS of the log
+    albedo (``metrics.region_band_energy``, per channel, floored at 1e-3) in the first half of the entries if its skin
+    is among the batch's darker half, in the second if among the lighter, zeros in the other, times 2: the mean over a
+    batch is each half's mean band RMS. The skin's tone is the mean linear albedo over the skin and forehead regions
+    (either side), ranked without a gradient, so the term moves detail, not tones. Needs a skin or forehead region."""
+    b = x.shape[0]
+    if b < 2 or b % 2:
+        raise ValueError(f"_albedo_tone_bands needs an even batch to halve, got {b}")
+    labels = torch.tensor(region_labels(regions), device=x.device) % SIDE_OFFSET
+    face = (labels == 1) | (labels == 2)  # shape.regions.REGIONS: skin, forehead
+    if not bool(face.any()):
+        raise ValueError("_albedo_tone_bands needs a skin (1) or forehead (2) region to rank the tones by")
+    with torch.no_grad():
+        tone = _region_tones(x, regions)[:, face].mean((1, 2))
+        dark = (tone.argsort().argsort() < b // 2).to(x.dtype)[:, None]
+    # of the log albedo: relative contrast, which a tone's scale does not change. Of the linear albedo (as the band
+    # term), the term was met by spreading the tones instead: lighter light halves have more linear detail, darker dark
+    # halves less (from 201.00 kimg at weight 1 the tone term's gap went 0.026 -> 0.13 in 1.25 kimg)
+    bands = region_band_energy(decode_albedo(x[:, :3]).clamp_min(1e-3).log(), regions, levels).flatten(1)
+    return 2 * torch.cat([bands * dark, bands * (1 - dark)], 1)
 
 
 def data_band(data: torch.Tensor, regions: torch.Tensor, levels: int, n: int = 512, chunk: int = 64) -> torch.Tensor:
@@ -782,7 +832,7 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
     return {"coherence": _albedo_coherence, "band": lambda x, regions: _albedo_bands(x, regions, t.band_levels),
             "spectrum": _albedo_spectra, "relief": _albedo_relief, "colour": _albedo_colour, "beard": _albedo_beard,
             "tone": _albedo_tone, "crown": _albedo_crown, "mean_map": _mean_map, "tone_order": _albedo_tone_order,
-            "detail_map": _detail_map}
+            "detail_map": _detail_map, "tone_band": lambda x, regions: _albedo_tone_bands(x, regions, t.band_levels)}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -795,7 +845,7 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
                   "tone": (tone_loss, _tone_gap), "crown": (coherence_loss, _abs_gap),
                   "mean_map": (coherence_loss, _abs_gap), "tone_order": (tone_order_loss, _tone_order_gap),
-                  "detail_map": (detail_map_loss, _detail_map_gap)}
+                  "detail_map": (detail_map_loss, _detail_map_gap), "tone_band": (band_loss, _relative_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
@@ -1201,9 +1251,7 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if getattr(t, f"{term}_weight") > 0 and getattr(state, f"{term}_target") is None:
             if state.regions is None:
                 raise ValueError(f"train: {term}_weight {getattr(t, f'{term}_weight')} needs state.regions (the UV region labels)")
-            target = (data_tone_order(data, state.regions, t.batch) if term == "tone_order"  # exact, for this batch size
-                      else _data_mean(lambda x, f=measure: f(x, state.regions), data, 512, 64))
-            setattr(state, f"{term}_target", target)
+            setattr(state, f"{term}_target", _data_target(term, measure, data, state.regions, t.batch))
     if state.nimg > 0:  # a resume: a checkpoint from before 2026-11-27 holds no running means, and one whose
         # regions or bands changed holds running means of another shape
         started = warm_running(state)
