@@ -47,7 +47,7 @@ def _added_share(G, gan) -> str:
     old, new = gan.channels(r), gan.g_channels(r)
     if new == old:
         return ""
-    rms = lambda t: float(t.detach().pow(2).mean().sqrt())
+    rms = lambda t: float(t.detach().pow(2).mean().sqrt())  # noqa: E731
     shares = {"conv1": [], "to_image": []}
     for name, w in G.synthesis.named_parameters():
         layer = name.split(".")[-2] if "." in name else ""
