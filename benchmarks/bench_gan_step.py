@@ -50,7 +50,7 @@ def main() -> None:
     for floor in (int(v) for v in a.g_channel_min.split(",")):
         for compiled in modes:
             rate, warm, params = step_rate(floor, compiled, a.steps, a.batch)
-            top = max(floor, 4096 // 256)
+            top = GanSettings(channel_base=4096, g_channel_min=floor).g_channels(256)
             print(f"  G's 256² {top:3d} ch (G {params:.2f} M)  compile {'on ' if compiled else 'off'}: "
                   f"{rate:5.2f} images/s  ({rate * 3.6:4.1f} kimg/h; first 3 steps {warm:5.1f} s)", flush=True)
 

@@ -47,6 +47,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
                 "tone_band_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
+# the train flags a --resume may not change: every other one may (the run length, cadence, ADA, rates, EMA, terms)
+_FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 
 
 @click.command("train")
@@ -228,13 +230,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # the run length, snapshot cadence, augmentation (on or off, its target, colour), learning rates and EMA
         # half-life may change on resume (turning ADA on when D starts to overfit, or lowering the rates,
         # are the usual moves); the rest is the run's own, and saying otherwise is an error
-        changeable = ("kimg", "snapshot_kimg", "ada", "ada_target", "ada_color", "ema_kimg", "g_lr", "d_lr", "g_top_lr_mul",
-                      "moment_weight", "moment_drift_weight", "link_weight", "coherence_weight", "band_weight", "band_levels",
-                      "spectrum_weight", "relief_weight", "colour_weight", "beard_weight", "tone_weight", "crown_weight",
-                      "mean_map_weight", "tone_order_weight", "detail_map_weight", "tone_band_weight", "hairline_region",
-                      "side_regions", "eye_region", "brow_edge_region", "drift_on_ema")
-        fixed = [k for k in _TRAIN_FLAGS if k not in changeable and flags.get(k) is not None
-                 and flags[k] != getattr(state.train, k)]
+        changeable = [k for k in _TRAIN_FLAGS if k not in _FIXED_ON_RESUME]
+        fixed = [k for k in _FIXED_ON_RESUME if flags.get(k) is not None and flags[k] != getattr(state.train, k)]
         if fixed:
             raise click.BadParameter(f"{', '.join('--' + k.replace('_', '-') for k in fixed)} cannot change on --resume "
                                      f"(the run has {', '.join(f'{k}={getattr(state.train, k)}' for k in fixed)})")

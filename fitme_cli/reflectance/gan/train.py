@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from .ada import augment
+from ...shape.regions import REGIONS
 from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone
 from .latents import sample_z
 from .metrics import (crown_flow, detail_link, detail_map, gaussian_blur, region_band_energy, region_coherence, region_labels,
@@ -404,9 +405,14 @@ def _g_param_groups(G: Generator, train: TrainSettings) -> list[dict]:
     for name, p in G.named_parameters():
         top = tag in name
         if not groups or groups[-1]["top"] != top:
-            groups.append({"params": [], "top": top, "lr": train.g_lr * (train.g_top_lr_mul if top else 1.0)})
+            groups.append({"params": [], "top": top, "lr": _g_lr(train, top)})
         groups[-1]["params"].append(p)
     return groups
+
+
+def _g_lr(train: TrainSettings, top: bool) -> float:
+    """G's learning rate for an Adam group of ``_g_param_groups``."""
+    return train.g_lr * (train.g_top_lr_mul if top else 1.0)
 
 
 def _lazy_r1_factor(train: TrainSettings) -> float:
@@ -418,7 +424,7 @@ def set_learning_rates(state: TrainState) -> None:
     """Point both optimisers at ``state.train``'s learning rates (after a resume changed them); Adam's
     moment estimates are kept."""
     for group in state.opt_G.param_groups:
-        group["lr"] = state.train.g_lr * (state.train.g_top_lr_mul if group["top"] else 1.0)
+        group["lr"] = _g_lr(state.train, group["top"])
     for group in state.opt_D.param_groups:
         group["lr"] = state.train.d_lr * _lazy_r1_factor(state.train)
 
@@ -541,9 +547,10 @@ def _albedo_tone_bands(x: torch.Tensor, regions: torch.Tensor, levels: int) -> t
     if b < 2 or b % 2:
         raise ValueError(f"_albedo_tone_bands needs an even batch to halve, got {b}")
     labels = torch.tensor(region_labels(regions), device=x.device) % SIDE_OFFSET
-    face = (labels == 1) | (labels == 2)  # shape.regions.REGIONS: skin, forehead
+    face = (labels == REGIONS.index("skin")) | (labels == REGIONS.index("forehead"))
     if not bool(face.any()):
-        raise ValueError("_albedo_tone_bands needs a skin (1) or forehead (2) region to rank the tones by")
+        raise ValueError(f"_albedo_tone_bands needs a skin ({REGIONS.index('skin')}) or forehead "
+                         f"({REGIONS.index('forehead')}) region to rank the tones by")
     with torch.no_grad():
         tone = _region_tones(x, regions)[:, face].mean((1, 2))
         dark = (tone.argsort().argsort() < b // 2).to(x.dtype)[:, None]
