@@ -11,6 +11,9 @@ Measures (192 latents, seed 11, constant noise, against the data's first 512 map
   10th / 50th / 90th percentiles beside the data's. The sampling error of the ratio is ~0.05.
 - skin+forehead std, band: the mean within-region std and finest Laplacian band RMS of the linear albedo, G over data.
 - beards: the share of samples whose beard zone is at least 0.6 and 0.3 hair (``metrics.hair_share``).
+- hairline share: the mean, std and 10th percentile over samples of the share of the hairline's reach that is hair
+  by texture or colour (``metrics.soft_hairline_share``: the hairline-share term's measure), beside the data's. A low
+  10th percentile is the data's receding hairlines.
 - band by tone: the same finest band on the samples in the data's darkest, middle and fairest third of skin tones
   (the data's tercile bounds), G over data: whether G's detail follows the tone as the data's does.
 - added channels (only where ``g_channel_min`` widened G): the RMS of the weights of each branch's top ``conv1`` and
@@ -30,15 +33,19 @@ import torch
 _SKIN, _FOREHEAD = 1, 2  # shape.regions.REGIONS
 
 
-def _measure(albedo: torch.Tensor, regions: torch.Tensor, zone: torch.Tensor) -> dict[str, torch.Tensor]:
-    """albedo (N, 3, R, R) linear -> per sample: skin tone, skin+forehead std and finest band, beard hair share."""
-    from fitme_cli.reflectance.gan.metrics import hair_share, region_band_energy, region_labels, region_moments
+def _measure(albedo: torch.Tensor, regions: torch.Tensor, zone: torch.Tensor,
+             hairline: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """albedo (N, 3, R, R) linear -> per sample: skin tone, skin+forehead std and finest band, beard hair share,
+    hairline hair share (hairline: reach, face, scalp masks)."""
+    from fitme_cli.reflectance.gan.metrics import (hair_share, region_band_energy, region_labels, region_moments,
+                                                   soft_hairline_share)
 
     labels = region_labels(regions)
     face = [labels.index(_SKIN), labels.index(_FOREHEAD)]
     moments = region_moments(albedo, regions)  # (N, k, 2, 3)
     return {"tone": moments[:, labels.index(_SKIN), 0].mean(1), "std": moments[:, face, 1].mean((1, 2)),
-            "band": region_band_energy(albedo, regions, 1)[:, face, 0].mean((1, 2)), "hair": hair_share(albedo, zone)}
+            "band": region_band_energy(albedo, regions, 1)[:, face, 0].mean((1, 2)), "hair": hair_share(albedo, zone),
+            "hairline": soft_hairline_share(albedo, *hairline)}
 
 
 def _added_share(G, gan) -> str:
@@ -67,6 +74,10 @@ def _band_by_tone(m: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> s
                       else "-" for k in range(3))
 
 
+def _spread(x: torch.Tensor) -> str:
+    return f"{float(x.mean()):.3f} +- {float(x.std()):.3f}, q10 {float(x.double().quantile(0.1)):.3f}"
+
+
 def _quantiles(x: torch.Tensor) -> str:
     return "/".join(f"{float(v):.3f}" for v in x.double().quantile(torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64)))
 
@@ -81,25 +92,26 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    from fitme_cli.reflectance.gan.data import beard_zone, load_dataset, load_regions
+    from fitme_cli.reflectance.gan.data import (beard_zone, hairline_reach, hairline_references, load_dataset,
+                                                load_regions)
     from fitme_cli.reflectance.gan.networks import decode_albedo
     from fitme_cli.reflectance.gan.train import load_checkpoint
 
-    data = ref = regions = zone = None
+    data = ref = regions = zone = hairline = None
     for path in args.checkpoints:
         state = load_checkpoint(path)
         G = state.G_ema if args.generator == "ema" else state.G
         if ref is None:
             r = state.gan.resolution
-            regions, zone = load_regions(r), beard_zone(r)
+            regions, zone, hairline = load_regions(r), beard_zone(r), (hairline_reach(r), *hairline_references(r))
             data = load_dataset(args.data_dir, state.gan, limit=512)
             ref = _measure(torch.cat([decode_albedo(data[i : i + 64].float()[:, :3]) for i in range(0, len(data), 64)]),
-                           regions, zone)
+                           regions, zone, hairline)
         z = torch.randn(args.latents, state.gan.z_dim, generator=torch.Generator().manual_seed(11))
         with torch.no_grad():
             albedo = torch.cat([decode_albedo(G(z[i : i + 32], noise_mode="const").cat()[:, :3])
                                 for i in range(0, len(z), 32)])
-        m = _measure(albedo, regions, zone)
+        m = _measure(albedo, regions, zone, hairline)
         print(f"{path.name} ({state.nimg / 1000:.2f} kimg, {args.generator}): "
               f"tone spread {float(m['tone'].std() / ref['tone'].std()):.3f}, "
               f"q10/50/90 {_quantiles(m['tone'])} (data {_quantiles(ref['tone'])}); "
@@ -108,7 +120,8 @@ def main() -> None:
               f"{_band_by_tone(m, ref)}); "
               f"beards >= 0.6 / 0.3: {float((m['hair'] >= 0.6).double().mean()):.3f} / "
               f"{float((m['hair'] >= 0.3).double().mean()):.3f} "
-              f"(data {float((ref['hair'] >= 0.6).double().mean()):.3f} / {float((ref['hair'] >= 0.3).double().mean()):.3f})"
+              f"(data {float((ref['hair'] >= 0.6).double().mean()):.3f} / {float((ref['hair'] >= 0.3).double().mean()):.3f}); "
+              f"hairline share {_spread(m['hairline'])} (data {_spread(ref['hairline'])})"
               f"{_added_share(G, state.gan)}",
               flush=True)
 

@@ -1786,6 +1786,108 @@ def test_tone_order_weight_sets_the_skew_of_tones_between_samples(tmp_path):
     _assert_region_term_refusals("tone_order", data, tmp_path)
 
 
+def test_hairline_share_weight_moves_the_hair_share_of_the_hairlines_reach(tmp_path):
+    """The measure is ``metrics.soft_hairline_share`` on the layout's hairline masks and its square (the regions not
+    used); pulled up, G's mean hair share there grows, pulled down it shrinks; it needs its regions and target, and
+    bad settings are refused."""
+    from fitme_cli.reflectance.gan.data import hairline_reach, hairline_references
+    from fitme_cli.reflectance.gan.metrics import soft_hairline_share
+    from fitme_cli.reflectance.gan.train import _albedo_hairline_share
+
+    data = _tiny_data()
+    regions = _two_regions()
+    alb = decode_maps(GanImages(data[:, :3], data[:, 3:4], data[:, 4:]), TINY).albedo
+    v = soft_hairline_share(alb, hairline_reach(16), *hairline_references(16))
+    torch.testing.assert_close(_albedo_hairline_share(data, regions), torch.stack([v, v.square()], 1))
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def run(weight, shift):
+        def target(base):
+            m = (base[0] + shift).clamp(0.05, 0.95)
+            return torch.stack([m, m.square()])
+
+        base, now, out = _pulled("hairline_share", weight, _albedo_hairline_share, target, regions, data, z)
+        return float(now[0]), out
+
+    off, l_off = run(0.0, 0.0)
+    up, l_up = run(20.0, 0.5)
+    down, _ = run(20.0, -0.5)
+    assert up > off + 0.1 and down < off - 0.1, (up, off, down)
+    assert "hairline_share_gap" not in l_off[0] and l_up[-1]["hairline_share_gap"] > 0
+    _assert_region_term_refusals("hairline_share", data, tmp_path)
+
+
+def test_soft_hairline_share_counts_hair_by_texture_or_colour():
+    """Known values on 16^2 maps (face columns 0-3, scalp 12-15, the reach 6-9, beyond a 5-box of either): skin-coloured
+    and flat reads 0, hair-coloured 1, halfway in log luminance 1/2 (either way from the skin), textured 1; a small
+    skin-hair contrast is floored;
+    the face and scalp means carry no gradient; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import soft_hairline_share
+
+    face, scalp, reach = (torch.zeros(16, 16, dtype=torch.bool) for _ in range(3))
+    face[:, :4], scalp[:, 12:], reach[:, 6:10] = True, True, True
+    flat = 1 / (1 + math.exp(5.95))  # the texture test on flat albedo (std ~0.001): sigmoid((0.001 - 0.12) / 0.02)
+
+    def maps(middle, skin=0.4, hair=0.1):
+        a = torch.full((1, 3, 16, 16), middle, dtype=torch.float64)
+        a[..., :4], a[..., 12:] = skin, hair
+        return a
+
+    def share(a, **kw):
+        return float(soft_hairline_share(a, reach, face, scalp, **kw)[0])
+
+    assert share(maps(0.4)) == pytest.approx(flat, abs=1e-4)
+    assert share(maps(0.1)) == pytest.approx(1.0, abs=1e-6)
+    assert share(maps(0.2)) == pytest.approx(0.5 + 0.5 * flat, abs=1e-4)  # sqrt(0.4 * 0.1): halfway in log luminance
+    # as far from the skin's colour the other way (lighter, where the hair is darker): not skin either
+    assert share(maps(0.8)) == pytest.approx(0.5 + 0.5 * flat, abs=1e-4)
+    striped = maps(0.4)
+    striped[..., 6:10] = torch.tensor([0.05, 0.4]).repeat(2).to(striped)  # skin-coloured strands
+    assert share(striped) > 0.95
+    # hair nearly the skin's colour: the contrast log(1.05) = 0.049 is floored at 0.3
+    a = math.log(1.05) / 0.3
+    assert share(maps(0.42, hair=0.42)) == pytest.approx(a + flat * (1 - a), abs=1e-4)
+    assert share(maps(0.42, hair=0.42), min_contrast=0.01) == pytest.approx(1.0, abs=1e-6)
+    a = maps(0.2).requires_grad_()
+    soft_hairline_share(a, reach, face, scalp).sum().backward()
+    assert bool((a.grad[..., :4] == 0).all() and (a.grad[..., 12:] == 0).all()) and float(a.grad[..., 6:10].abs().sum()) > 0
+    base = 0.2 + 0.1 * torch.rand(1, 3, 16, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+
+    def of_reach(t):
+        m = maps(0.2).clone()
+        m[..., 6:10] = t
+        return soft_hairline_share(m, reach, face, scalp)
+
+    assert torch.autograd.gradcheck(of_reach, (base.requires_grad_(),))
+    with pytest.raises(ValueError, match=r"expected a non-empty \(R, R\) bool face mask like the reach \(16, 16\), got \(16, 16\) torch.bool with 0 texels"):
+        soft_hairline_share(maps(0.2), reach, torch.zeros_like(face), scalp)
+    with pytest.raises(ValueError, match=r"bool scalp mask like the reach \(16, 16\), got \(8, 8\)"):
+        soft_hairline_share(maps(0.2), reach, face, scalp[:8, :8])
+    with pytest.raises(ValueError, match="min_contrast must be finite and > 0, got 0.0"):
+        soft_hairline_share(maps(0.2), reach, face, scalp, min_contrast=0.0)
+    with pytest.raises(ValueError, match="softness must be finite and > 0, got -1.0"):
+        soft_hairline_share(maps(0.2), reach, face, scalp, softness=-1.0)
+    with pytest.raises(ValueError, match=r"expected float \(N, 3, R, R\) albedo"):
+        soft_hairline_share(torch.zeros(1, 4, 16, 16), reach, face, scalp)
+
+
+def test_hairline_reach_is_the_hairline_band_and_the_scalp_behind_it():
+    """And ``hairline_references``: the face side of the band, and the scalp well behind the reach."""
+    from fitme_cli.reflectance.gan.data import (hairline_band, hairline_reach, hairline_references, hairline_zones,
+                                                load_regions)
+
+    reach, zones = hairline_reach(256), hairline_zones(256)
+    assert reach.dtype == torch.bool and bool((reach == ((zones == 1) | (zones == 2))).all())
+    assert bool(reach[hairline_band(256)].all()) and 4000 < int(reach.sum()) < 9000
+    assert float((load_regions(256)[reach] == 0).float().mean()) > 0.5  # mostly the scalp (shape.regions.REGIONS 0)
+    assert float(torch.nonzero(reach)[:, 0].float().mean()) < 128  # UV v runs down the face: the upper half
+    assert bool(hairline_reach(16).any())
+    face, scalp = hairline_references(256)
+    assert bool((face == (zones == 0)).all()) and not bool((scalp & reach).any()) and not bool((face & reach).any())
+    assert bool((load_regions(256)[scalp] == 0).all()) and int(scalp.sum()) > 3 * int(reach.sum())
+    assert all(bool(m.any()) for m in hairline_references(16))
+
+
 def test_beard_zone_holds_the_data_beards():
     """The card's beard measure (G's beards came and went while every mean held, docs/brdf_gan.md): the zone lies on
     the lower face, and the data's beards read as hair there, its shaven faces not."""
@@ -2007,7 +2109,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
@@ -2032,6 +2134,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.mean_map_weight == 0.01 and lines[-1]["mean_map_gap"] > 0 and "mean_map_gap" not in lines[0]
     assert state.train.tone_order_weight == 0.1 and lines[-1]["tone_order_gap"] > 0 and "tone_order_gap" not in lines[0]
     assert state.train.tone_band_weight == 0.5 and lines[-1]["tone_band_gap"] > 0 and "tone_band_gap" not in lines[0]
+    assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
+    assert "hairline_share_gap" not in lines[0]
     assert state.train.detail_map_weight == 0.0001 and lines[-1]["detail_map_gap"] > 0 and "detail_map_gap" not in lines[0]
     ranks = state.running_tone_order.view(4, -1)  # batch 4's centred ranks, saved with the checkpoint
     assert bool((ranks.diff(dim=0) >= 0).all()) and float(ranks.sum(0).abs().max()) < 1e-5

@@ -18,8 +18,8 @@ import torch
 from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
-__all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "split_sides",
-           "eye_openings", "brow_edges", "beard_zone", "HAIRLINE_LABEL", "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
+__all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "hairline_reach",
+           "hairline_references", "split_sides", "eye_openings", "brow_edges", "beard_zone", "HAIRLINE_LABEL", "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
 
@@ -108,17 +108,22 @@ HAIRLINE_LABEL = 8
 _HAIRLINE_UV = (-0.01, 0.016)
 
 
-def hairline_zones(resolution: int) -> torch.Tensor:
-    """(R, R) uint8: the training data's hairline (``fitme dataset``'s layout, ``skin_data.SkinLayout.hair_dist``
-    within ``_HAIRLINE_UV``) labelled 1, the face side of it 0 and the scalp side 2 (each as wide as the band,
-    0.026 UV), 255 elsewhere. Below 64^2, the 64^2 zones resized (nearest)."""
+def _hair_dist(resolution: int) -> np.ndarray:
+    """(S, S) float32, S = max(resolution, 64): the layout's signed distance into the scalp (UV units)."""
     from ...perception.registry import ensure_models
     from ..skin_data import skin_layout
 
     if resolution < 1:
         raise ValueError(f"expected a resolution >= 1, got {resolution}")
-    size = max(resolution, 64)
-    dist = skin_layout(ensure_models(["shape_model"]), size).hair_dist
+    return skin_layout(ensure_models(["shape_model"]), max(resolution, 64)).hair_dist
+
+
+def hairline_zones(resolution: int) -> torch.Tensor:
+    """(R, R) uint8: the training data's hairline (``fitme dataset``'s layout, ``skin_data.SkinLayout.hair_dist``
+    within ``_HAIRLINE_UV``) labelled 1, the face side of it 0 and the scalp side 2 (each as wide as the band,
+    0.026 UV), 255 elsewhere. Below 64^2, the 64^2 zones resized (nearest)."""
+    dist = _hair_dist(resolution)
+    size = dist.shape[0]
     lo, hi = _HAIRLINE_UV
     band = ((dist > lo) & (dist <= hi)).astype(np.uint8)
     # the eye holes are unmapped, which the layout counts as scalp: their rings are small separate
@@ -139,6 +144,30 @@ def hairline_zones(resolution: int) -> torch.Tensor:
 def hairline_band(resolution: int) -> torch.Tensor:
     """(R, R) bool: the texels around the training data's hairline (``hairline_zones`` 1)."""
     return hairline_zones(resolution) == 1
+
+
+def hairline_reach(resolution: int) -> torch.Tensor:
+    """(R, R) bool: the hairline band and the scalp just behind it (``hairline_zones`` 1 and 2: 0.052 UV, 13 texels
+    at 256^2, all along the scalp's edge), which the data's hairline crosses as it recedes: ``fitme dataset`` puts
+    it 0-0.006 inside the scalp edge, a further 0-0.03 on two in five older faces."""
+    zones = hairline_zones(resolution)
+    return (zones == 1) | (zones == 2)
+
+
+# how far into the scalp (UV) ``hairline_references``' scalp starts: past the most receded data hairline's ramp
+# (0.006 + 0.03 + 0.016, ragged by ~0.006)
+_SCALP_INTERIOR_UV = 0.06
+
+
+def hairline_references(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(face, scalp), each (R, R) bool: where ``metrics.soft_hairline_share`` takes a sample's skin and hair colour.
+    face: the face side of the hairline (``hairline_zones`` 0); scalp: the scalp region (``shape.regions.REGIONS``
+    0) at least 0.06 UV inside the scalp's edge, where every data sample has hair."""
+    dist = _hair_dist(resolution)
+    if dist.shape[0] != resolution:
+        dist = cv2.resize(dist, (resolution,) * 2, interpolation=cv2.INTER_NEAREST)
+    scalp = torch.from_numpy(dist > _SCALP_INTERIOR_UV) & (load_regions(resolution) == 0)
+    return hairline_zones(resolution) == 0, scalp
 
 
 # the per-region terms' labels for the eye openings (``load_regions(eyes=True)``) and the brows' edges

@@ -44,7 +44,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
-           "soft_hair_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map"]
+           "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -212,6 +212,37 @@ def soft_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int = 5, t
         raise ValueError(f"softness must be finite and > 0, got {softness}")
     std = (_local_log_var(albedo, window) + 1e-6).sqrt()  # 1e-6: a finite gradient where the albedo is flat
     return torch.sigmoid((std - threshold) / softness)[:, zone].mean(1)
+
+
+def soft_hairline_share(albedo: torch.Tensor, reach: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor,
+                        window: int = 5, threshold: float = 0.12, softness: float = 0.02,
+                        min_contrast: float = 0.3) -> torch.Tensor:
+    """albedo: (N, 3, R, R) linear, [0, 1]; reach, face, scalp: (R, R) bool (``data.hairline_reach`` and
+    ``data.hairline_references``) -> (N,) float in [0, 1]: per sample, the share of ``reach`` that is hair by its
+    texture or by its colour, 1 - (1 - t)(1 - a). t is ``soft_hair_share``'s texture test; a is the log luminance's
+    distance from the mean over ``face`` over the scalp mean's (over ``scalp``), clamped to [0, 1]. The two means
+    carry no gradient, and their difference is floored at ``min_contrast`` in magnitude (log luminance): where hair
+    and skin are alike, colour says little and texture decides.
+    Texture alone counts a smooth band between skin and hair as skin: pulled on that measure from 207.88 kimg, G
+    lowered its share by widening a blurred rim along the hairline, not by moving the hairline. A signed position
+    between the two means (clamped) counted a rim darker or lighter than the skin, away from the hair, as skin, and
+    G drew such rims too (docs/brdf_gan.md). Here only untextured, skin-coloured texels lower the share."""
+    _check_hair_share(albedo, reach, window)
+    for name, m in (("face", face), ("scalp", scalp)):
+        if m.shape != reach.shape or m.dtype != torch.bool or not bool(m.any()):
+            raise ValueError(f"expected a non-empty (R, R) bool {name} mask like the reach {tuple(reach.shape)}, got "
+                             f"{tuple(m.shape)} {m.dtype} with {int(m.sum()) if m.dtype == torch.bool else '?'} texels")
+    for name, v in (("softness", softness), ("min_contrast", min_contrast)):
+        if not (v > 0 and math.isfinite(v)):
+            raise ValueError(f"{name} must be finite and > 0, got {v}")
+    lum = albedo.mean(1).clamp_min(1e-3).log()
+    with torch.no_grad():
+        f = lum[:, face].mean(1)
+        c = (lum[:, scalp].mean(1) - f).abs().clamp_min(min_contrast)
+    a = ((lum[:, reach] - f[:, None]).abs() / c[:, None]).clamp(max=1)
+    std = (_local_log_var(albedo, window) + 1e-6).sqrt()
+    t = torch.sigmoid((std - threshold) / softness)[:, reach]
+    return (1 - (1 - a) * (1 - t)).mean(1)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:
