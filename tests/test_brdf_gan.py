@@ -1820,8 +1820,7 @@ def test_hairline_share_weight_moves_the_hair_share_of_the_hairlines_reach(tmp_p
 def test_soft_hairline_share_counts_hair_by_texture_or_colour():
     """Known values on 16^2 maps (face columns 0-3, scalp 12-15, the reach 6-9, beyond a 5-box of either): skin-coloured
     and flat reads 0, hair-coloured 1, halfway in log luminance 1/2 (either way from the skin), textured 1; a small
-    skin-hair contrast is floored;
-    the face and scalp means carry no gradient; bad input is refused."""
+    skin-hair contrast is floored; the face and scalp means carry no gradient; bad input is refused."""
     from fitme_cli.reflectance.gan.metrics import soft_hairline_share
 
     face, scalp, reach = (torch.zeros(16, 16, dtype=torch.bool) for _ in range(3))
@@ -1842,11 +1841,11 @@ def test_soft_hairline_share_counts_hair_by_texture_or_colour():
     # as far from the skin's colour the other way (lighter, where the hair is darker): not skin either
     assert share(maps(0.8)) == pytest.approx(0.5 + 0.5 * flat, abs=1e-4)
     striped = maps(0.4)
-    striped[..., 6:10] = torch.tensor([0.05, 0.4]).repeat(2).to(striped)  # skin-coloured strands
-    assert share(striped) > 0.95
+    striped[..., 6:10] = torch.tensor([0.4, 0.6]).repeat(2).to(striped)  # strands near the skin's colour
+    assert share(striped) > 0.95  # by texture: by colour alone they would read (0 + log 1.5 / log 4) / 2 = 0.15
     # hair nearly the skin's colour: the contrast log(1.05) = 0.049 is floored at 0.3
-    a = math.log(1.05) / 0.3
-    assert share(maps(0.42, hair=0.42)) == pytest.approx(a + flat * (1 - a), abs=1e-4)
+    by_colour = math.log(1.05) / 0.3
+    assert share(maps(0.42, hair=0.42)) == pytest.approx(by_colour + flat * (1 - by_colour), abs=1e-4)
     assert share(maps(0.42, hair=0.42), min_contrast=0.01) == pytest.approx(1.0, abs=1e-6)
     a = maps(0.2).requires_grad_()
     soft_hairline_share(a, reach, face, scalp).sum().backward()
