@@ -19,7 +19,8 @@ from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
 __all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "hairline_reach",
-           "hairline_references", "split_sides", "eye_openings", "brow_edges", "beard_zone", "HAIRLINE_LABEL", "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
+           "hairline_references", "split_sides", "eye_openings", "brow_edges", "beard_zone", "HAIRLINE_LABEL", "EYE_LABEL",
+           "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
 

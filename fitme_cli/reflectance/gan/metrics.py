@@ -182,10 +182,15 @@ def _check_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int) -> 
         raise ValueError(f"window must be odd and >= 1, got {window}")
 
 
+def _log_luminance(albedo: torch.Tensor) -> torch.Tensor:
+    """(N, 3, R, R) linear albedo -> (N, R, R): log of the mean of r, g, b, floored at 1e-3."""
+    return albedo.mean(1).clamp_min(1e-3).log()
+
+
 def _local_log_var(albedo: torch.Tensor, window: int) -> torch.Tensor:
     """(N, 3, R, R) linear albedo -> (N, R, R): the variance (>= 0) of the log luminance over a ``window``^2 box
     (edges: the box's texels inside the map)."""
-    lum = albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
+    lum = _log_luminance(albedo)[:, None]
     mean = F.avg_pool2d(lum, window, 1, window // 2, count_include_pad=False)
     var = F.avg_pool2d(lum.square(), window, 1, window // 2, count_include_pad=False) - mean.square()
     return var.clamp_min(0)[:, 0]
@@ -208,10 +213,15 @@ def soft_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int = 5, t
     against the step's 0.176 / 0.147; at 0.04 the mean rose to 0.284, the smooth skin's near-threshold texels
     counting as part hair."""
     _check_hair_share(albedo, zone, window)
+    return _soft_hair(albedo, window, threshold, softness)[:, zone].mean(1)
+
+
+def _soft_hair(albedo: torch.Tensor, window: int, threshold: float, softness: float) -> torch.Tensor:
+    """(N, 3, R, R) linear albedo -> (N, R, R) in (0, 1): ``soft_hair_share``'s texture test per texel."""
     if not (softness > 0 and math.isfinite(softness)):
         raise ValueError(f"softness must be finite and > 0, got {softness}")
     std = (_local_log_var(albedo, window) + 1e-6).sqrt()  # 1e-6: a finite gradient where the albedo is flat
-    return torch.sigmoid((std - threshold) / softness)[:, zone].mean(1)
+    return torch.sigmoid((std - threshold) / softness)
 
 
 def soft_hairline_share(albedo: torch.Tensor, reach: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor,
@@ -232,16 +242,14 @@ def soft_hairline_share(albedo: torch.Tensor, reach: torch.Tensor, face: torch.T
         if m.shape != reach.shape or m.dtype != torch.bool or not bool(m.any()):
             raise ValueError(f"expected a non-empty (R, R) bool {name} mask like the reach {tuple(reach.shape)}, got "
                              f"{tuple(m.shape)} {m.dtype} with {int(m.sum()) if m.dtype == torch.bool else '?'} texels")
-    for name, v in (("softness", softness), ("min_contrast", min_contrast)):
-        if not (v > 0 and math.isfinite(v)):
-            raise ValueError(f"{name} must be finite and > 0, got {v}")
-    lum = albedo.mean(1).clamp_min(1e-3).log()
+    if not (min_contrast > 0 and math.isfinite(min_contrast)):
+        raise ValueError(f"min_contrast must be finite and > 0, got {min_contrast}")
+    t = _soft_hair(albedo, window, threshold, softness)[:, reach]
+    lum = _log_luminance(albedo)
     with torch.no_grad():
         f = lum[:, face].mean(1)
         c = (lum[:, scalp].mean(1) - f).abs().clamp_min(min_contrast)
     a = ((lum[:, reach] - f[:, None]).abs() / c[:, None]).clamp(max=1)
-    std = (_local_log_var(albedo, window) + 1e-6).sqrt()
-    t = torch.sigmoid((std - threshold) / softness)[:, reach]
     return (1 - (1 - a) * (1 - t)).mean(1)
 
 
