@@ -15,10 +15,10 @@ from click.testing import CliRunner
 
 from fitme_cli.reflectance.gan import ops
 from fitme_cli.reflectance.gan.ada import augment
-from fitme_cli.reflectance.gan.networks import (Discriminator, GanImages, GanSettings, Generator, ReflectanceMaps,
-                                                decode_maps, encode_maps)
+from fitme_cli.reflectance.gan.networks import (Discriminator, GanImages, GanSettings, Generator, PatchDiscriminator,
+                                                ReflectanceMaps, decode_maps, encode_maps)
 from fitme_cli.reflectance.gan.train import (TrainSettings, can_compile, copy_generator, load_checkpoint, new_state,
-                                             save_checkpoint, train, train_step)
+                                             random_crops, save_checkpoint, sync_patch_discriminator, train, train_step)
 
 TINY = GanSettings(resolution=16, branch_resolution=8, channel_base=64, channel_max=16, z_dim=32, w_dim=32)
 
@@ -128,6 +128,45 @@ def test_discriminator_shape_and_bad_input():
     assert D(torch.randn(3, 7, 16, 16)).shape == (3,)  # minibatch-std group adapts
     with pytest.raises(ValueError, match=r"expected images of shape \(B, 7, 16, 16\), got \(4, 6, 16, 16\)"):
         D(torch.randn(4, 6, 16, 16))
+
+
+def test_patch_discriminator_shapes_gradients_and_bad_input():
+    D = PatchDiscriminator(size=16, channels=4, channel_max=8)
+    # 16 -> 8 -> 4: features 4, 8, then capped at 8
+    assert [b.conv1.weight.shape[:2] for b in D.blocks] == [(8, 4), (8, 8)] and D.from_image.weight.shape[:2] == (4, 7)
+    x = torch.randn(6, 7, 16, 16, requires_grad=True)
+    y = D(x)
+    assert y.shape == (6,) and bool(torch.isfinite(y).all())
+    y.sum().backward()
+    for name, p in D.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    assert bool((x.grad[:, :4].abs().sum((0, 2, 3)) > 0).all()) and bool((x.grad[:, 4:].abs().sum((0, 2, 3)) > 0).all())
+    with pytest.raises(ValueError, match=r"expected crops of shape \(B, 7, 16, 16\), got \(2, 7, 32, 32\)"):
+        D(torch.randn(2, 7, 32, 32))
+    with pytest.raises(ValueError, match="size must be a power of two >= 8, got 12"):
+        PatchDiscriminator(size=12)
+    with pytest.raises(ValueError, match="expected 1 <= channels <= channel_max, got 0 and 128"):
+        PatchDiscriminator(channels=0)
+
+
+def test_random_crops_are_slices_of_each_sample_in_sample_major_order():
+    x = torch.arange(2 * 1 * 8 * 8, dtype=torch.float64).view(2, 1, 8, 8).requires_grad_(True)
+    torch.manual_seed(0)
+    crops = random_crops(x, 3, 5)
+    assert crops.shape == (10, 1, 3, 3)
+    for k, crop in enumerate(crops.detach()):
+        i = k // 5
+        # each crop's top-left value says where it was cut; the crop is that slice of sample i
+        y, u = divmod(int(crop[0, 0, 0]) - 64 * i, 8)
+        assert 0 <= y <= 5 and 0 <= u <= 5 and torch.equal(crop, x.detach()[i, :, y : y + 3, u : u + 3])
+    torch.manual_seed(0)
+    assert torch.equal(random_crops(x, 3, 5), crops)  # drawn from the global RNG (a checkpoint restores it)
+    crops.sum().backward()
+    assert float(x.grad.sum()) == 10 * 9  # every crop's texels reach the maps once
+    assert torch.equal(random_crops(x, 8, 1).detach(), x.detach())  # a crop the map's size is the map
+    for bad in ((x, 9, 1), (x, 0, 1), (x, 3, 0), (x[0], 3, 1), (x[..., :7], 3, 1)):
+        with pytest.raises(ValueError, match="expected .B, C, R, R. maps with R >= size and count >= 1"):
+            random_crops(*bad)
 
 
 @pytest.mark.parametrize("joint", [False, True])
@@ -1295,6 +1334,72 @@ def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
         assert torch.equal(va, vb), ka
 
 
+def test_patch_weight_trains_a_local_d_that_learns_resumes_exactly_and_refuses_bad_settings(tmp_path):
+    data = _tiny_data(r=16)
+    settings = TrainSettings(batch=4, kimg=1, ada=True, r1_interval=2, patch_weight=0.5, patch_size=8, patch_count=3,
+                             patch_channels=4)
+    state = new_state(TINY, settings)
+    assert state.D_patch.size == 8 and state.D_patch.from_image.weight.shape[0] == 4
+    # the full model's init does not depend on the local D (made last)
+    plain = new_state(TINY, dataclasses.replace(settings, patch_weight=0.0))
+    assert plain.D_patch is None and plain.opt_D_patch is None
+    for a, b in ((state.G, plain.G), (state.D, plain.D)):
+        assert all(torch.equal(va, vb) for va, vb in zip(a.state_dict().values(), b.state_dict().values()))
+    # G's step follows the local D: one step from the same state and seed at two weights moves G differently
+    quiet = new_state(TINY, dataclasses.replace(settings, patch_weight=1e-6))
+    for st in (state, quiet):
+        torch.manual_seed(0)
+        train_step(st, data[:4])
+    assert any(not torch.equal(a, b) for a, b in zip(state.G.parameters(), quiet.G.parameters()))
+    # against a G that ignores it (weight 1e-6) the local D learns to tell the crops apart: its loss 1.17 -> 0.84
+    torch.manual_seed(0)
+    losses = [train_step(quiet, data[(4 * i) % 16 : (4 * i) % 16 + 4]) for i in range(40)]
+    assert all(np.isfinite(d["loss_patch_g"]) and np.isfinite(d["loss_patch_d"]) for d in losses)
+    first, last = np.mean([d["loss_patch_d"] for d in losses[:5]]), np.mean([d["loss_patch_d"] for d in losses[-5:]])
+    assert last < first - 0.15, (first, last)
+    assert "loss_patch_g" not in train_step(plain, data[:4])
+    # a checkpoint keeps the local D and its optimiser: two more steps from the file are bit-identical
+    save_checkpoint(state, tmp_path / "ck.safetensors")
+    loaded = load_checkpoint(tmp_path / "ck.safetensors")
+    assert all(torch.equal(va, vb) for va, vb in zip(state.D_patch.state_dict().values(), loaded.D_patch.state_dict().values()))
+    train_step(state, data[4:8])
+    train_step(state, data[8:12])
+    loaded = load_checkpoint(tmp_path / "ck.safetensors")  # restores the RNG as it was at saving
+    train_step(loaded, data[4:8])
+    train_step(loaded, data[8:12])
+    for a, b in ((state.G, loaded.G), (state.D_patch, loaded.D_patch)):
+        for (ka, va), (_, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+            assert torch.equal(va, vb), ka
+    # another size on load, or on a resume (sync_patch_discriminator), starts a fresh local D; the same one is kept
+    resized = load_checkpoint(tmp_path / "ck.safetensors", dataclasses.replace(settings, patch_size=16))
+    assert resized.D_patch.size == 16
+    kept = loaded.D_patch
+    assert sync_patch_discriminator(loaded) is False and loaded.D_patch is kept
+    loaded.train = dataclasses.replace(loaded.train, patch_channels=8)
+    assert sync_patch_discriminator(loaded) is True and loaded.D_patch.from_image.weight.shape[0] == 8
+    assert sum(p.numel() for g in loaded.opt_D_patch.param_groups for p in g["params"]) == \
+        sum(p.numel() for p in loaded.D_patch.parameters())
+    loaded.train = dataclasses.replace(loaded.train, patch_weight=0.0)
+    assert sync_patch_discriminator(loaded) is False and loaded.D_patch is None and loaded.opt_D_patch is None
+    # widening the networks keeps the local D
+    from fitme_cli.reflectance.gan.widen import widen_state
+
+    wide = widen_state(state, dataclasses.replace(TINY, channel_base=128))
+    assert wide.D_patch is state.D_patch and wide.opt_D_patch is state.opt_D_patch
+    with pytest.raises(ValueError, match="patch_size 32 exceeds the maps' resolution 16"):
+        new_state(TINY, dataclasses.replace(settings, patch_size=32))
+    plain.train = settings  # a state made without the local D, then asked for it
+    with pytest.raises(ValueError, match="needs state.D_patch"):
+        train_step(plain, data[:4])
+    for bad, match in (({"patch_weight": -1.0}, "patch_weight must be finite and >= 0"),
+                       ({"patch_size": 48}, "patch_size must be a power of two >= 8, got 48"),
+                       ({"patch_count": 0}, "expected patch_count >= 1 and patch_channels in 1..128, got 0 and 32"),
+                       ({"patch_channels": 200}, "expected patch_count >= 1 and patch_channels in 1..128, got 4 and 200"),
+                       ({"patch_r1_gamma": float("nan")}, "patch_r1_gamma must be finite and >= 0")):
+        with pytest.raises(ValueError, match=match):
+            TrainSettings(**bad)
+
+
 def test_checkpoint_keeps_the_drift_terms_running_means(tmp_path):
     """A resume restarted the band and spectrum terms' running means from one batch (not exact); they are
     saved now, and a resume with the terms on continues bit-identically. A running mean whose shape no
@@ -2109,9 +2214,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
                                   "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
-                                  "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--threads", "1"])
+                                  "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
+                                  "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
+                                  "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
+    assert "a fresh local D on 8x8 crops" in r.output and "local D 0." in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     assert state.train.hairline_region is True and state.train.side_regions is True and state.train.relief_weight == 2.0
     assert state.train.eye_region is True and state.train.brow_edge_region is True and state.train.colour_weight == 0.5
@@ -2134,6 +2242,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.tone_order_weight == 0.1 and lines[-1]["tone_order_gap"] > 0 and "tone_order_gap" not in lines[0]
     assert state.train.tone_band_weight == 0.5 and lines[-1]["tone_band_gap"] > 0 and "tone_band_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
+    assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
+    assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
     assert "hairline_share_gap" not in lines[0]
     assert state.train.detail_map_weight == 0.0001 and lines[-1]["detail_map_gap"] > 0 and "detail_map_gap" not in lines[0]
     ranks = state.running_tone_order.view(4, -1)  # batch 4's centred ranks, saved with the checkpoint
@@ -2147,6 +2257,9 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 2 and "--ema-kimg" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "h"), "--resolution", "16", "--hairline-region"])
     assert r.exit_code == 2 and "hairline_region needs a per-region term" in r.output
+    r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "p"), "--resolution", "16", "--patch-weight",
+                                  "1", "--patch-size", "32"])
+    assert r.exit_code == 2 and "--patch-size 32 exceeds the maps' resolution 16" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "c"), "--resolution", "16", "--crown-weight", "1"])
     assert r.exit_code == 2 and "--crown-weight needs a resolution that is a multiple of 128" in r.output
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--batch", "8"])
@@ -2167,6 +2280,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "added D's joint branch" in r.output and "widened" not in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     assert state.gan.d_joint_branch and state.D.joint_branch is not None and state.nimg == 24
+    assert state.D_patch is not None and state.D_patch.size == 8  # kept through the widenings
     # turning drift_on_ema on restarts the running means, which followed G, from G_ema's maps
     r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--kimg", "0.028", "--resume", "--drift-on-ema",
                                   "--threads", "1"])

@@ -47,7 +47,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
                 "tone_band_weight", "hairline_share_weight", "hairline_region", "side_regions", "eye_region",
-                "brow_edge_region", "drift_on_ema")
+                "brow_edge_region", "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels",
+                "patch_r1_gamma")
 # the train flags a --resume may not change: every other one may (the run length, cadence, ADA, rates, EMA, terms)
 _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 
@@ -155,6 +156,14 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="The drift terms' running means follow G_ema's maps (the model that ships) instead of the training "
                    "G's; one more forward pass per step (not in the paper; may change on --resume, which then restarts "
                    "the running means; tried once, unstable: docs/brdf_gan.md). [off]")
+@click.option("--patch-weight", type=click.FloatRange(min=0),
+              help="A second, local D on random crops of the maps at full resolution, with more features per texel than "
+                   "D's top layers, against soft hairlines, hazy skin and smeared strands; its weight in G's loss (not in "
+                   "the paper; may change on --resume: a local D first turned on, or resized, starts fresh). [0]")
+@click.option("--patch-size", type=click.IntRange(min=8), help="The local D's crop size (a power of two). [64]")
+@click.option("--patch-count", type=click.IntRange(min=1), help="The local D's crops per map. [4]")
+@click.option("--patch-channels", type=click.IntRange(1, 128), help="The local D's features per texel at the crop size. [32]")
+@click.option("--patch-r1-gamma", type=click.FloatRange(min=0), help="The local D's R1 weight. [0.05]")
 @click.option("--branch-noise", type=click.FloatRange(-1, 1),
               help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
                    "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")
@@ -190,7 +199,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..reflectance.gan.networks import GanSettings
     from ..reflectance.gan.train import (TrainSettings, can_compile, clear_running, compile_synthesis, load_checkpoint,
                                          new_state, reset_mean_image, save_checkpoint, set_branch_noise,
-                                         set_learning_rates, train)
+                                         set_learning_rates, sync_patch_discriminator, train)
 
     from ..reflectance.gan.data import find_samples
 
@@ -226,6 +235,9 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     if train_settings.crown_weight > 0 and gan_settings.resolution % 128:
         raise click.BadParameter(f"--crown-weight needs a resolution that is a multiple of 128 (its window's bins are "
                                  f"R / 128 texels), got {gan_settings.resolution}")
+    if train_settings.patch_weight > 0 and train_settings.patch_size > gan_settings.resolution:
+        raise click.BadParameter(f"--patch-size {train_settings.patch_size} exceeds the maps' resolution "
+                                 f"{gan_settings.resolution}")
 
     ckpt = run_dir / "checkpoint.safetensors"
     if resume:
@@ -248,6 +260,11 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             clear_running(state)  # they followed the other generator: ``train`` restarts them from the one now tracked
         state.train = dataclasses.replace(state.train, **new)
         set_learning_rates(state)
+        try:
+            if sync_patch_discriminator(state):
+                click.echo(f"a fresh local D on {state.train.patch_size}x{state.train.patch_size} crops", err=True)
+        except ValueError as e:
+            raise click.BadParameter(str(e)) from None
         # the architecture is the run's own, except that its channels may grow (gan/widen.py: the wider
         # networks start out computing what the trained ones did)
         grown = {k: v for k, v in cfg["gan"].items() if getattr(state.gan, k) != v}
@@ -306,7 +323,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         compile_synthesis(state)
         click.echo("G's synthesis is compiled on the first G and D steps (about a minute each)", err=True)
     click.echo(f"{len(data)} samples at {gan_settings.resolution}^2; G {sum(p.numel() for p in state.G.parameters()) / 1e6:.2f}M, "
-               f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters", err=True)
+               f"D {sum(p.numel() for p in state.D.parameters()) / 1e6:.2f}M parameters"
+               + (f", local D {sum(p.numel() for p in state.D_patch.parameters()) / 1e6:.2f}M" if state.D_patch else ""), err=True)
     with _stop_requests() as stops:
         try:
             train(state, data, run_dir, stop=lambda: bool(stops))

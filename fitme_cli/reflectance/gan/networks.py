@@ -26,7 +26,7 @@ from ..maps import ReflectanceMaps
 from .ops import bias_lrelu, conv_down2x, downsample2x, modulated_conv2d, upsample2x
 
 __all__ = ["MODALITIES", "GanSettings", "GanImages", "ReflectanceMaps", "MappingNetwork", "SynthesisNetwork",
-           "Generator", "Discriminator", "encode_maps", "decode_maps", "decode_albedo"]
+           "Generator", "Discriminator", "PatchDiscriminator", "encode_maps", "decode_maps", "decode_albedo"]
 
 MODALITIES = (("albedo", 3), ("specular", 1), ("normals", 3))  # name, channels; in this order in the 7-ch image
 N_CHANNELS = sum(c for _, c in MODALITIES)
@@ -419,6 +419,18 @@ class _DBranch(nn.Module):
         return x
 
 
+def _minibatch_std(x: torch.Tensor, group: int) -> torch.Tensor:
+    """(B, C, H, W) -> (B, C + 1, H, W): StyleGAN2's minibatch standard deviation, over groups of up to ``group``."""
+    b, c, h, w = x.shape
+    g = min(group, b)
+    while b % g:
+        g -= 1
+    y = x.reshape(g, -1, c, h, w)
+    y = (y.var(0, unbiased=False) + 1e-8).sqrt().mean(dim=(1, 2, 3))  # (B/g,)
+    y = y.reshape(1, -1, 1, 1, 1).expand(g, -1, 1, h, w).reshape(b, 1, h, w)
+    return torch.cat([x, y], 1)
+
+
 class Discriminator(nn.Module):
     """(B, 7, R, R) in network space -> (B,) logits. D_A sees A_D (+) A_S, D_N sees N_S; their 4x4
     features are concatenated for the last block (minibatch std, conv, two fully connected layers).
@@ -438,14 +450,7 @@ class Discriminator(nn.Module):
         self.out = _Linear(c4, 1)
 
     def _mbstd(self, x: torch.Tensor) -> torch.Tensor:
-        b, c, h, w = x.shape
-        g = min(self.mbstd_group, b)
-        while b % g:
-            g -= 1
-        y = x.reshape(g, -1, c, h, w)
-        y = (y.var(0, unbiased=False) + 1e-8).sqrt().mean(dim=(1, 2, 3))  # (B/g,)
-        y = y.reshape(1, -1, 1, 1, 1).expand(g, -1, 1, h, w).reshape(b, 1, h, w)
-        return torch.cat([x, y], 1)
+        return _minibatch_std(x, self.mbstd_group)
 
     def forward(self, img: torch.Tensor) -> torch.Tensor:
         r = self.settings.resolution
@@ -455,4 +460,41 @@ class Discriminator(nn.Module):
         if self.joint_branch is not None:
             x = torch.cat([x, self.joint_branch(img)], 1)
         x = self.conv(x)
+        return self.out(self.fc(x.flatten(1))).squeeze(1)
+
+
+class PatchDiscriminator(nn.Module):
+    """(B, 7, P, P) crops of maps in network space -> (B,) logits. Not in the paper: a second, local D that sees
+    all 7 channels at the maps' full resolution with ``channels`` features per texel, doubling per halving of the
+    size up to ``channel_max``; ``Discriminator``'s 256^2 layers have 16 at ``channel_base`` 4096, and a wider
+    full-map D cost 3.7x per step (docs/brdf_gan.md). Residual blocks down to 4x4, then minibatch std, a conv
+    and two fully connected layers, as ``Discriminator``'s last block."""
+
+    def __init__(self, size: int = 64, channels: int = 32, channel_max: int = 128, clamp: float | None = 256.0,
+                 mbstd_group: int = 4):
+        super().__init__()
+        if size < 8 or size & (size - 1):
+            raise ValueError(f"size must be a power of two >= 8, got {size}")
+        if not 1 <= channels <= channel_max:
+            raise ValueError(f"expected 1 <= channels <= channel_max, got {channels} and {channel_max}")
+        self.size, self.mbstd_group = size, mbstd_group
+        sizes = [size >> i for i in range(int(math.log2(size)) - 1)]  # size, size / 2, ..., 4
+
+        def c(r: int) -> int:
+            return min(channels * size // r, channel_max)
+
+        self.from_image = _Conv(N_CHANNELS, c(size), 1, clamp=clamp)
+        self.blocks = nn.ModuleList(_DBlock(c(r), c(r // 2), clamp) for r in sizes[:-1])
+        c4 = c(4)
+        self.conv = _Conv(c4 + 1, c4, 3, clamp=clamp)
+        self.fc = _Linear(c4 * 16, c4, act=True)
+        self.out = _Linear(c4, 1)
+
+    def forward(self, crops: torch.Tensor) -> torch.Tensor:
+        if crops.ndim != 4 or crops.shape[1:] != (N_CHANNELS, self.size, self.size):
+            raise ValueError(f"expected crops of shape (B, {N_CHANNELS}, {self.size}, {self.size}), got {tuple(crops.shape)}")
+        x = self.from_image(crops)
+        for b in self.blocks:
+            x = b(x)
+        x = self.conv(_minibatch_std(x, self.mbstd_group))
         return self.out(self.fc(x.flatten(1))).squeeze(1)

@@ -27,13 +27,14 @@ from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard
 from .latents import sample_z
 from .metrics import (crown_flow, detail_link, detail_map, gaussian_blur, region_band_energy, region_coherence, region_labels,
                       region_moments, region_relief, region_spectrum, soft_hair_share, soft_hairline_share)
-from .networks import Discriminator, GanSettings, Generator, decode_albedo
+from .networks import Discriminator, GanSettings, Generator, PatchDiscriminator, decode_albedo
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
            "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
-           "set_branch_noise", "clear_running", "can_compile", "compile_synthesis"]
+           "set_branch_noise", "clear_running", "can_compile", "compile_synthesis", "random_crops",
+           "new_patch_discriminator", "sync_patch_discriminator"]
 
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
@@ -238,6 +239,18 @@ class TrainSettings:
     # Tried from 172.00 kimg it was unstable: D won at once, and G_ema's finest skin band went to 3.5x the data's
     # while G's stayed at 0.7 (a push on G does not move the average of its weights the same way)
     drift_on_ema: bool = False
+    # not in the paper: weight in G's loss of a second, local D (``networks.PatchDiscriminator``) on ``patch_count``
+    # random ``patch_size``^2 crops of each map at full resolution, ``patch_channels`` features per texel. The blind
+    # test's tells at 214 kimg were all local and crisp in the data: ragged hairlines (G: soft domes with a rim),
+    # sharp freckles and pores (G: hazy), crisp beard strands (G: smeared); D's 256^2 layers have 16 channels and a
+    # 32-channel D cost 3.7x per step. Trained like D (non-saturating, lazy R1 with ``patch_r1_gamma``, ADA's
+    # augmentation before the crops); its R1 gamma is StyleGAN2-ADA's heuristic 0.0002 P^2 / crops per batch:
+    # 0.05 at 64^2 and 16 crops. 0: off (the paper)
+    patch_weight: float = 0.0
+    patch_size: int = 64
+    patch_count: int = 4
+    patch_channels: int = 32
+    patch_r1_gamma: float = 0.05
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -260,6 +273,15 @@ class TrainSettings:
                 raise ValueError(f"{term}_weight must be finite and >= 0, got {weight}")
             if not 0 <= beta < 1:
                 raise ValueError(f"{term}_beta must be in [0, 1), got {beta}")
+        if not (self.patch_weight >= 0 and math.isfinite(self.patch_weight)):
+            raise ValueError(f"patch_weight must be finite and >= 0, got {self.patch_weight}")
+        if self.patch_size < 8 or self.patch_size & (self.patch_size - 1):
+            raise ValueError(f"patch_size must be a power of two >= 8, got {self.patch_size}")
+        if self.patch_count < 1 or not 1 <= self.patch_channels <= 128:
+            raise ValueError(f"expected patch_count >= 1 and patch_channels in 1..128, got {self.patch_count} and "
+                             f"{self.patch_channels}")
+        if not (self.patch_r1_gamma >= 0 and math.isfinite(self.patch_r1_gamma)):
+            raise ValueError(f"patch_r1_gamma must be finite and >= 0, got {self.patch_r1_gamma}")
         if not 1 <= self.band_levels <= 3:
             raise ValueError(f"band_levels must be 1, 2 or 3, got {self.band_levels}")
         if not isinstance(self.drift_on_ema, bool):
@@ -363,6 +385,9 @@ class TrainState:
     # (``_albedo_hairline_share``), the hairline-share term's target, and G's running ones; derived and saved like the link's
     hairline_share_target: torch.Tensor | None = None
     running_hairline_share: torch.Tensor | None = None
+    # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
+    D_patch: PatchDiscriminator | None = None
+    opt_D_patch: torch.optim.Adam | None = None
 
 
 def copy_generator(G: Generator) -> Generator:
@@ -406,7 +431,49 @@ def new_state(gan: GanSettings, train: TrainSettings, data_mean: torch.Tensor | 
     c = _lazy_r1_factor(train)
     opt_G = torch.optim.Adam(_g_param_groups(G, train), lr=train.g_lr, betas=(0.0, train.beta2), eps=1e-8)
     opt_D = torch.optim.Adam(D.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
-    return TrainState(gan, train, G, D, G_ema, opt_G, opt_D)
+    state = TrainState(gan, train, G, D, G_ema, opt_G, opt_D)
+    if train.patch_weight > 0:  # made last: the full model's init does not depend on it
+        state.D_patch = new_patch_discriminator(gan, train)
+        state.opt_D_patch = torch.optim.Adam(state.D_patch.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
+    return state
+
+
+def new_patch_discriminator(gan: GanSettings, train: TrainSettings) -> PatchDiscriminator:
+    """A freshly initialised ``PatchDiscriminator`` for ``train``'s patch settings."""
+    if train.patch_size > gan.resolution:
+        raise ValueError(f"patch_size {train.patch_size} exceeds the maps' resolution {gan.resolution}")
+    D = PatchDiscriminator(train.patch_size, train.patch_channels, max(gan.channel_max, train.patch_channels), gan.conv_clamp)
+    return D.to(memory_format=torch.channels_last) if train.channels_last else D
+
+
+def sync_patch_discriminator(state: TrainState) -> bool:
+    """Make ``state``'s local D fit ``state.train`` after a resume changed it: a fresh one (and optimiser) where
+    ``patch_weight`` > 0 and there is none or one of another size or width; none where ``patch_weight`` is 0 (a
+    local D turned off is dropped, not kept stale). Returns True when it made a fresh one.
+    Starting a fresh one's first layers from D's joint branch (which reads the maps at the same texel scale; widened
+    as ``widen.widen_module`` does) did not make it learn faster: against fixed 214.08 kimg G_ema maps its loss was
+    1.36 after 200 steps, against 1.32 from its own init (docs/brdf_gan.md)."""
+    t = state.train
+    if t.patch_weight <= 0:
+        state.D_patch = state.opt_D_patch = None
+        return False
+    D = state.D_patch
+    if D is not None and D.size == t.patch_size and D.from_image.weight.shape[0] == t.patch_channels:
+        return False
+    c = _lazy_r1_factor(t)
+    state.D_patch = new_patch_discriminator(state.gan, t)
+    state.opt_D_patch = torch.optim.Adam(state.D_patch.parameters(), lr=t.d_lr * c, betas=(0.0, t.beta2**c), eps=1e-8)
+    return True
+
+
+def random_crops(x: torch.Tensor, size: int, count: int) -> torch.Tensor:
+    """x: (B, C, R, R) -> (B * count, C, size, size): ``count`` crops of each sample (sample-major), at positions
+    drawn uniformly from the global torch RNG. Differentiable (slices)."""
+    if x.ndim != 4 or x.shape[-1] != x.shape[-2] or not 1 <= size <= x.shape[-1] or count < 1:
+        raise ValueError(f"expected (B, C, R, R) maps with R >= size and count >= 1, got {tuple(x.shape)}, size {size}, "
+                         f"count {count}")
+    corners = torch.randint(0, x.shape[-1] - size + 1, (x.shape[0], count, 2)).tolist()
+    return torch.stack([x[i, :, y : y + size, u : u + size] for i, row in enumerate(corners) for y, u in row])
 
 
 def _g_param_groups(G: Generator, train: TrainSettings) -> list[dict]:
@@ -439,8 +506,9 @@ def set_learning_rates(state: TrainState) -> None:
     moment estimates are kept."""
     for group in state.opt_G.param_groups:
         group["lr"] = _g_lr(state.train, group["top"])
-    for group in state.opt_D.param_groups:
-        group["lr"] = state.train.d_lr * _lazy_r1_factor(state.train)
+    for opt in (state.opt_D, state.opt_D_patch):
+        for group in [] if opt is None else opt.param_groups:
+            group["lr"] = state.train.d_lr * _lazy_r1_factor(state.train)
 
 
 def _ws(state: TrainState, z: torch.Tensor) -> torch.Tensor:
@@ -911,6 +979,32 @@ def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
 
 
+def _patch_crops(state: TrainState, img: torch.Tensor) -> torch.Tensor:
+    """The local D's input: ``random_crops`` of ``img`` after ADA's augmentation (drawn apart from D's)."""
+    t = state.train
+    x = augment(img, state.ada_p, color=t.ada_color) if t.ada else img
+    crops = random_crops(x, t.patch_size, t.patch_count)
+    return crops.contiguous(memory_format=torch.channels_last) if t.channels_last else crops
+
+
+def _d_step(judge: Callable[[torch.Tensor], torch.Tensor], opt: torch.optim.Optimizer, reals: torch.Tensor,
+            fakes: torch.Tensor, r1_gamma: float, r1_interval: int, do_r1: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One step of a discriminator ``judge`` (D, or the local D on crops): softplus(judge(fakes)) + softplus(-judge(reals)),
+    and on ``do_r1`` steps lazily r1_gamma / 2 |grad judge(reals)|^2 (weighted by the interval). ``reals``: a leaf
+    without grad. Returns (the loss, the R1 term, the real logits)."""
+    real_in = reals.requires_grad_(do_r1)
+    logits_real = judge(real_in)
+    loss = F.softplus(judge(fakes)).mean() + F.softplus(-logits_real).mean()
+    loss_r1 = torch.zeros(())
+    if do_r1:
+        (grad,) = torch.autograd.grad(logits_real.sum(), real_in, create_graph=True)
+        loss_r1 = grad.square().sum(dim=(1, 2, 3)).mean() * (r1_gamma / 2)
+    opt.zero_grad(set_to_none=True)
+    (loss + loss_r1 * r1_interval).backward()
+    opt.step()
+    return loss, loss_r1, logits_real
+
+
 def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     """One G step and one D step on ``reals`` (batch, 7, R, R) network space. Returns the losses."""
     t, G, D = state.train, state.G, state.D
@@ -925,6 +1019,13 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     z = torch.randn(b, state.gan.z_dim)
     fake = G.synthesis(_ws(state, z)).cat()
     loss_g = F.softplus(-_d(state, fake)).mean()
+    Dp = state.D_patch
+    if t.patch_weight > 0 and Dp is None:
+        raise ValueError(f"train_step: patch_weight {t.patch_weight} needs state.D_patch (new_state makes it)")
+    loss_pg = torch.zeros(())
+    if t.patch_weight > 0:
+        Dp.requires_grad_(False)
+        loss_pg = F.softplus(-Dp(_patch_crops(state, fake))).mean()
     # with drift_on_ema the drift terms' running means follow G_ema's maps of the same latents (unmixed, as sampled)
     ema = None
     if t.drift_on_ema and (t.moment_drift_weight > 0 or t.link_weight > 0 or t.region_terms):
@@ -951,7 +1052,8 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
         link = float((links.detach() if ema is None else detail_link(ema, state.link_mask)).mean())
         state.running_link = link if state.running_link is None else state.running_link + (1 - t.link_beta) * (link - state.running_link)
         loss_link = link_loss(links, state.running_link, state.link_target)
-    total = loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
+    total = (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
+             + t.patch_weight * loss_pg)
     gaps: dict[str, float] = {}
     for term, measure in _region_measures(t).items():
         weight = getattr(t, f"{term}_weight")
@@ -972,16 +1074,16 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     with torch.no_grad():
         fake = G.synthesis(_ws(state, torch.randn(b, state.gan.z_dim))).cat()
     do_r1 = t.r1_gamma > 0 and state.step % t.r1_interval == 0
-    real_in = reals.detach().requires_grad_(do_r1)
-    logits_real = _d(state, real_in)
-    loss_d = F.softplus(_d(state, fake)).mean() + F.softplus(-logits_real).mean()
-    loss_r1 = torch.zeros(())
-    if do_r1:
-        (grad,) = torch.autograd.grad(logits_real.sum(), real_in, create_graph=True)
-        loss_r1 = grad.square().sum(dim=(1, 2, 3)).mean() * (t.r1_gamma / 2)
-    state.opt_D.zero_grad(set_to_none=True)
-    (loss_d + loss_r1 * t.r1_interval).backward()
-    state.opt_D.step()
+    loss_d, loss_r1, logits_real = _d_step(lambda x: _d(state, x), state.opt_D, reals.detach(), fake, t.r1_gamma,
+                                           t.r1_interval, do_r1)
+    patch: dict[str, float] = {}
+    if t.patch_weight > 0:
+        Dp.requires_grad_(True)
+        real_crops = _patch_crops(state, reals).detach()
+        loss_pd, _, logits_pr = _d_step(Dp, state.opt_D_patch, real_crops, _patch_crops(state, fake), t.patch_r1_gamma,
+                                        t.r1_interval, do_r1)
+        patch = {"loss_patch_g": float(loss_pg.detach()), "loss_patch_d": float(loss_pd.detach()),
+                 "patch_real_logit": float(logits_pr.detach().mean())}
     # ADA heuristic: r_t = E[sign(D(real))]
     if t.ada:
         state.ada_acc += float(logits_real.detach().sign().sum())
@@ -1012,6 +1114,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     if link is not None:
         out["link"] = link  # this batch's mean detail_link, G_ema's with drift_on_ema (the target: state.link_target)
     out.update(gaps)  # each active per-region term's distance to its target (``_REGION_LOSSES``' gap)
+    out.update(patch)
     return out
 
 
@@ -1119,6 +1222,9 @@ def save_checkpoint(state: TrainState, path: Path) -> None:
         tensors.update({f"{name}.{k}": v.detach().contiguous() for k, v in module.state_dict().items()})
     tensors.update(_opt_tensors("opt_G", state.opt_G))
     tensors.update(_opt_tensors("opt_D", state.opt_D))
+    if state.D_patch is not None:
+        tensors.update({f"D_patch.{k}": v.detach().contiguous() for k, v in state.D_patch.state_dict().items()})
+        tensors.update(_opt_tensors("opt_D_patch", state.opt_D_patch))
     tensors["rng.torch"] = torch.get_rng_state()
     # the drift terms' running means: without them a resume restarts each from one batch, a noisy
     # direction for ~1 / (1 - beta) steps (at 158.01 kimg D's loss fell from 0.2-0.5 to 0.01-0.04 at once)
@@ -1182,6 +1288,12 @@ def load_checkpoint(path: Path, train: TrainSettings | None = None) -> TrainStat
     state.learned_mean_image = _drop_mean_image_state(state.G, tensors)
     _load_opt("opt_G", state.opt_G, tensors)
     _load_opt("opt_D", state.opt_D, tensors)
+    if state.D_patch is not None:
+        # kept where the stored run had the same local D; a fresh one otherwise (first turned on, or resized)
+        same = all(getattr(stored, k) == getattr(state.train, k) for k in ("patch_size", "patch_channels"))
+        if stored.patch_weight > 0 and same and any(k.startswith("D_patch.") for k in tensors):
+            state.D_patch.load_state_dict({k[8:]: v for k, v in tensors.items() if k.startswith("D_patch.")})
+            _load_opt("opt_D_patch", state.opt_D_patch, tensors)
     torch.set_rng_state(tensors["rng.torch"])
     for k, v in json.loads(meta["counters"]).items():
         setattr(state, k, v)

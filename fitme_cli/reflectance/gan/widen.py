@@ -84,4 +84,6 @@ def widen_state(state, gan: GanSettings):
         widen_module(getattr(state, name), getattr(out, name))
     for name in ("step", "nimg", "ada_p", "ada_acc", "ada_n", "wall_time"):
         setattr(out, name, getattr(state, name))
+    if state.D_patch is not None:  # the local D reads the maps, not the networks' channels: kept as it is
+        out.D_patch, out.opt_D_patch = state.D_patch, state.opt_D_patch
     return out
