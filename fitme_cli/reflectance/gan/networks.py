@@ -477,7 +477,7 @@ class PatchDiscriminator(nn.Module):
             raise ValueError(f"size must be a power of two >= 8, got {size}")
         if not 1 <= channels <= channel_max:
             raise ValueError(f"expected 1 <= channels <= channel_max, got {channels} and {channel_max}")
-        self.size, self.mbstd_group = size, mbstd_group
+        self.size, self.channels, self.mbstd_group = size, channels, mbstd_group
         sizes = [size >> i for i in range(int(math.log2(size)) - 1)]  # size, size / 2, ..., 4
 
         def c(r: int) -> int:

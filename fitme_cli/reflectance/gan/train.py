@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from .ada import augment
 from ...shape.regions import REGIONS
@@ -428,14 +429,16 @@ def new_state(gan: GanSettings, train: TrainSettings, data_mean: torch.Tensor | 
         G.to(memory_format=torch.channels_last)
         D.to(memory_format=torch.channels_last)
     G_ema = copy_generator(G)
-    c = _lazy_r1_factor(train)
     opt_G = torch.optim.Adam(_g_param_groups(G, train), lr=train.g_lr, betas=(0.0, train.beta2), eps=1e-8)
-    opt_D = torch.optim.Adam(D.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
-    state = TrainState(gan, train, G, D, G_ema, opt_G, opt_D)
-    if train.patch_weight > 0:  # made last: the full model's init does not depend on it
-        state.D_patch = new_patch_discriminator(gan, train)
-        state.opt_D_patch = torch.optim.Adam(state.D_patch.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
+    state = TrainState(gan, train, G, D, G_ema, opt_G, _d_optimizer(D, train))
+    sync_patch_discriminator(state)  # the local D, if asked for, made last: the full model's init does not depend on it
     return state
+
+
+def _d_optimizer(D: nn.Module, train: TrainSettings) -> torch.optim.Adam:
+    """Adam for a discriminator (D or the local D): lazy R1's corrected learning rate and momentum."""
+    c = _lazy_r1_factor(train)
+    return torch.optim.Adam(D.parameters(), lr=train.d_lr * c, betas=(0.0, train.beta2**c), eps=1e-8)
 
 
 def new_patch_discriminator(gan: GanSettings, train: TrainSettings) -> PatchDiscriminator:
@@ -458,11 +461,10 @@ def sync_patch_discriminator(state: TrainState) -> bool:
         state.D_patch = state.opt_D_patch = None
         return False
     D = state.D_patch
-    if D is not None and D.size == t.patch_size and D.from_image.weight.shape[0] == t.patch_channels:
+    if D is not None and (D.size, D.channels) == (t.patch_size, t.patch_channels):
         return False
-    c = _lazy_r1_factor(t)
     state.D_patch = new_patch_discriminator(state.gan, t)
-    state.opt_D_patch = torch.optim.Adam(state.D_patch.parameters(), lr=t.d_lr * c, betas=(0.0, t.beta2**c), eps=1e-8)
+    state.opt_D_patch = _d_optimizer(state.D_patch, t)
     return True
 
 
@@ -974,16 +976,20 @@ def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | 
     return loss(values, running, target), running, gap(running, target)
 
 
-def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
+def _augmented(state: TrainState, img: torch.Tensor) -> torch.Tensor:
+    """``img`` through ADA's augmentation at the run's p, when ADA is on."""
     t = state.train
-    return state.D(augment(img, state.ada_p, color=t.ada_color) if t.ada else img)
+    return augment(img, state.ada_p, color=t.ada_color) if t.ada else img
+
+
+def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
+    return state.D(_augmented(state, img))
 
 
 def _patch_crops(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     """The local D's input: ``random_crops`` of ``img`` after ADA's augmentation (drawn apart from D's)."""
     t = state.train
-    x = augment(img, state.ada_p, color=t.ada_color) if t.ada else img
-    crops = random_crops(x, t.patch_size, t.patch_count)
+    crops = random_crops(_augmented(state, img), t.patch_size, t.patch_count)
     return crops.contiguous(memory_format=torch.channels_last) if t.channels_last else crops
 
 
