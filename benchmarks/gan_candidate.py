@@ -1,6 +1,6 @@
 """Is a BRDF-GAN candidate worth shipping? Its card next to the shipped one's, and what each does to
 fits of real photos: FaceNet similarity (the evaluation network) of the three sample photos to the
-render of their fit, per preset. Prints a Markdown table.
+render of their fit, the fits' landmark error and their seconds per fit, per preset. Prints a Markdown table.
 
 A better card alone is not enough: the 107 kimg state (2026-11-25) had a Fréchet distance of 0.055
 against the shipped 92 kimg model's 0.063 and fitted the sample photos worse (docs/brdf_gan.md).
@@ -71,6 +71,22 @@ def median_sims(runs: list[dict[str, float]]) -> dict[str, float]:
     return {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
 
 
+def preset_rows(preset: str, result: dict, members: int) -> dict[str, str]:
+    """Table rows of one model's fits at one preset (a worker's JSON line): each photo's median likeness and their
+    mean, each photo's median landmark error, and the median seconds per fit, so that a candidate's cost in time
+    shows beside its accuracy (a wider G fits slower: docs/brdf_gan.md)."""
+    import numpy as np
+
+    sims, med = result["sims"], f", median of {members}" if members > 1 else ""
+    rows = {f"{preset} preset{med}: {' / '.join(sims)}, mean":
+            " / ".join(f"{v:.2f}" for v in sims.values()) + f", **{float(np.mean(list(sims.values()))):.3f}**"}
+    if "landmark_px" in result:  # worker lines written before 2026-11-29 lack it
+        rows[f"{preset} preset: landmark px, median per photo"] = " / ".join(
+            f"{result['landmark_px'][k]:.1f}" for k in sims)
+    rows[f"{preset} preset: s per fit, median"] = f"{float(np.median(result['fit_s'])):.1f}"
+    return rows
+
+
 def _worker(presets: list[str], threads: int, members: int) -> None:
     """In a process whose FITME_MODELS_DIR is the model under test: one JSON line per preset."""
     import torch
@@ -81,12 +97,14 @@ def _worker(presets: list[str], threads: int, members: int) -> None:
 
     models, photos = load_models(), collect_photos(None)
     for preset in presets:
-        runs, secs = [], []
+        runs, landmarks, secs = [], [], []
         for m in range(members):
             res = run_real_photos(models, photos, FitSettings.from_preset(preset).member(m, 1e-5))
             runs.append({r.photo: r.render_sim for r in res})
+            landmarks.append({r.photo: r.landmark_px for r in res})
             secs += [r.fit_s for r in res]
-        print(json.dumps({"preset": preset, "sims": median_sims(runs), "members": runs, "fit_s": secs}), flush=True)
+        print(json.dumps({"preset": preset, "sims": median_sims(runs), "members": runs,
+                          "landmark_px": median_sims(landmarks), "fit_s": secs}), flush=True)
 
 
 def _models_with(candidate: Path, shipped: Path, out: Path) -> Path:
@@ -141,11 +159,7 @@ def main() -> None:
     rows = {k: card_rows(c) for k, c in cards.items()}
     for p in presets:
         for k in fits:
-            sims = fits[k][p]["sims"]
-            vals = list(sims.values())
-            med = f", median of {args.members}" if args.members > 1 else ""
-            rows[k][f"{p} preset{med}: {' / '.join(sims)}, mean"] = (" / ".join(f"{v:.2f}" for v in vals)
-                                                               + f", **{sum(vals) / len(vals):.3f}**")
+            rows[k].update(preset_rows(p, fits[k][p], args.members))
     print("| | shipped | candidate |\n|---|---|---|")
     for key in dict.fromkeys([*rows["shipped"], *rows["candidate"]]):
         print(f"| {key} | {rows['shipped'].get(key, '–')} | {rows['candidate'].get(key, '–')} |")

@@ -93,3 +93,14 @@ def test_median_sims_per_photo_and_same_photos_only(gc):
 def test_bad_member_count_is_refused(tmp_path):
     r = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path), "--members", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "--members must be >= 1, got 0" in r.stderr
+
+
+def test_preset_rows_show_likeness_landmarks_and_time(gc):
+    result = {"sims": {"astronaut": 0.45, "camera": 0.65}, "landmark_px": {"astronaut": 4.44, "camera": 2.14},
+              "fit_s": [38.0, 41.0, 40.0, 39.0]}
+    rows = gc.preset_rows("default", result, 3)
+    assert rows == {"default preset, median of 3: astronaut / camera, mean": "0.45 / 0.65, **0.550**",
+                    "default preset: landmark px, median per photo": "4.4 / 2.1",
+                    "default preset: s per fit, median": "39.5"}
+    old = {k: v for k, v in result.items() if k != "landmark_px"}  # a worker line from before landmarks were kept
+    assert list(gc.preset_rows("fast", old, 1)) == ["fast preset: astronaut / camera, mean", "fast preset: s per fit, median"]
