@@ -63,7 +63,7 @@ def card_rows(card: dict) -> dict[str, str]:
 
 
 def median_sims(runs: list[dict[str, float]]) -> dict[str, float]:
-    """Each photo's median similarity over the members' runs ({photo: similarity} each, same photos)."""
+    """Each photo's median over the members' runs ({photo: similarity or landmark error} each, same photos)."""
     import numpy as np
 
     if not runs or any(set(r) != set(runs[0]) for r in runs):
@@ -80,9 +80,7 @@ def preset_rows(preset: str, result: dict, members: int) -> dict[str, str]:
     sims, med = result["sims"], f", median of {members}" if members > 1 else ""
     rows = {f"{preset} preset{med}: {' / '.join(sims)}, mean":
             " / ".join(f"{v:.2f}" for v in sims.values()) + f", **{float(np.mean(list(sims.values()))):.3f}**"}
-    if "landmark_px" in result:  # worker lines written before 2026-11-29 lack it
-        rows[f"{preset} preset: landmark px, median per photo"] = " / ".join(
-            f"{result['landmark_px'][k]:.1f}" for k in sims)
+    rows[f"{preset} preset: landmark px, median per photo"] = " / ".join(f"{result['landmark_px'][k]:.1f}" for k in sims)
     rows[f"{preset} preset: s per fit, median"] = f"{float(np.median(result['fit_s'])):.1f}"
     return rows
 
