@@ -169,6 +169,68 @@ def test_random_crops_are_slices_of_each_sample_in_sample_major_order():
             random_crops(*bad)
 
 
+def test_focused_crops_are_centred_on_the_given_texels_and_shifted_inside_at_the_edges():
+    x = torch.arange(2 * 1 * 8 * 8, dtype=torch.float64).view(2, 1, 8, 8)
+    centres = torch.tensor([[4, 4], [0, 7]])  # the middle; a corner texel, whose crop must shift inside
+    torch.manual_seed(0)
+    crops = random_crops(x, 3, 5, centres, focused=3)
+    seen = set()
+    for k, crop in enumerate(crops):
+        i, j = divmod(k, 5)
+        y, u = divmod(int(crop[0, 0, 0]) - 64 * i, 8)
+        if j < 3:  # focused: (4, 4) -> corner (3, 3); (0, 7) -> (-1, 6), shifted to (0, 5)
+            assert (y, u) in {(3, 3), (0, 5)}
+            seen.add((y, u))
+        assert torch.equal(crop, x[i, :, y : y + 3, u : u + 3])
+    assert seen == {(3, 3), (0, 5)}  # both centres drawn (10 draws of 2)
+    torch.manual_seed(0)
+    assert torch.equal(random_crops(x, 3, 5, centres, focused=3), crops)  # the global RNG, as the uniform crops
+    torch.manual_seed(0)
+    assert torch.equal(random_crops(x, 3, 5, centres, focused=0), (torch.manual_seed(0), random_crops(x, 3, 5))[1])
+    with pytest.raises(ValueError, match=r"expected 0 <= focused <= count \(5\), got 6"):
+        random_crops(x, 3, 5, centres, focused=6)
+    for bad in (None, torch.zeros(0, 2, dtype=torch.long), torch.zeros(3, dtype=torch.long)):
+        with pytest.raises(ValueError, match=r"focused crops need centres of shape \(N >= 1, 2\)"):
+            random_crops(x, 3, 5, bad, focused=1)
+
+
+def test_focus_texels_are_the_hairline_reach_and_the_beard_zone(models_root):
+    from fitme_cli.reflectance.gan.data import beard_zone, hairline_reach
+    from fitme_cli.reflectance.gan.train import focus_texels
+
+    t = focus_texels(64)
+    mask = torch.zeros(64, 64, dtype=torch.bool)
+    mask[t[:, 0], t[:, 1]] = True
+    assert t.dtype == torch.long and t.shape[1] == 2 and len(t) == int(mask.sum())  # no texel twice
+    assert torch.equal(mask, hairline_reach(64) | beard_zone(64))
+    rows = t[:, 0].float()
+    assert rows.min() < 20 and rows.max() > 40  # the hairline above the eyes, the beard below the mouth
+
+
+def test_patch_focus_centres_that_share_of_the_local_d_crops_on_the_focus_texels(models_root, monkeypatch):
+    import fitme_cli.reflectance.gan.train as train_mod
+
+    with pytest.raises(ValueError, match=r"patch_focus must be in \[0, 1\], got 1.5"):
+        TrainSettings(patch_focus=1.5)
+    calls = []
+
+    def spy(x, size, count, centres=None, focused=0):
+        calls.append((count, focused, None if centres is None else centres.clone()))
+        return random_crops(x, size, count, centres, focused)
+
+    monkeypatch.setattr(train_mod, "random_crops", spy)
+    data = _tiny_data(r=16)
+    for focus, want in ((0.0, 0), (0.5, 2), (1.0, 3)):  # 3 crops per map: 0.5 rounds to 2
+        calls.clear()
+        st = new_state(TINY, TrainSettings(batch=4, kimg=1, patch_weight=0.5, patch_size=8, patch_count=3,
+                                            patch_channels=4, patch_focus=focus))
+        torch.manual_seed(0)
+        out = train_step(st, data[:4])
+        assert np.isfinite(out["loss_patch_d"]) and calls and all(c[:2] == (3, want) for c in calls)
+        if want:
+            assert all(torch.equal(c[2], train_mod.focus_texels(16)) for c in calls)
+
+
 @pytest.mark.parametrize("joint", [False, True])
 def test_every_branch_receives_gradients(joint):
     G, D = Generator(TINY), Discriminator(dataclasses.replace(TINY, d_joint_branch=joint))

@@ -48,7 +48,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
                 "tone_band_weight", "hairline_share_weight", "hairline_region", "side_regions", "eye_region",
                 "brow_edge_region", "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels",
-                "patch_r1_gamma")
+                "patch_r1_gamma", "patch_focus")
 # the train flags a --resume may not change: every other one may (the run length, cadence, ADA, rates, EMA, terms)
 _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 
@@ -164,6 +164,9 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 @click.option("--patch-count", type=click.IntRange(min=1), help="The local D's crops per map. [4]")
 @click.option("--patch-channels", type=click.IntRange(1, 128), help="The local D's features per texel at the crop size. [32]")
 @click.option("--patch-r1-gamma", type=click.FloatRange(min=0), help="The local D's R1 weight. [0.05]")
+@click.option("--patch-focus", type=click.FloatRange(0, 1),
+              help="Share of the local D's crops centred on the hairline and the beard zone, where the person test's "
+                   "tells are, instead of anywhere (may change on --resume). [0]")
 @click.option("--branch-noise", type=click.FloatRange(-1, 1),
               help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
                    "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")

@@ -35,7 +35,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
            "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
            "set_branch_noise", "clear_running", "can_compile", "compile_synthesis", "random_crops",
-           "new_patch_discriminator", "sync_patch_discriminator"]
+           "new_patch_discriminator", "sync_patch_discriminator", "focus_texels"]
 
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
@@ -252,6 +252,10 @@ class TrainSettings:
     patch_count: int = 4
     patch_channels: int = 32
     patch_r1_gamma: float = 0.05
+    # share of each map's local-D crops centred on the person test's tells (``focus_texels``: the hairline and the
+    # beard zone) instead of anywhere: uniform 64^2 crops are mostly plain hair, skin or border, where G is close to
+    # the data, and that local D stayed at chance for 10 kimg. Rounded to whole crops. 0: uniform (may change on resume)
+    patch_focus: float = 0.0
 
     def __post_init__(self) -> None:
         if self.batch < 2 or self.batch % 2:
@@ -283,6 +287,8 @@ class TrainSettings:
                              f"{self.patch_channels}")
         if not (self.patch_r1_gamma >= 0 and math.isfinite(self.patch_r1_gamma)):
             raise ValueError(f"patch_r1_gamma must be finite and >= 0, got {self.patch_r1_gamma}")
+        if not 0 <= self.patch_focus <= 1:
+            raise ValueError(f"patch_focus must be in [0, 1], got {self.patch_focus}")
         if not 1 <= self.band_levels <= 3:
             raise ValueError(f"band_levels must be 1, 2 or 3, got {self.band_levels}")
         if not isinstance(self.drift_on_ema, bool):
@@ -468,14 +474,33 @@ def sync_patch_discriminator(state: TrainState) -> bool:
     return True
 
 
-def random_crops(x: torch.Tensor, size: int, count: int) -> torch.Tensor:
+def random_crops(x: torch.Tensor, size: int, count: int, centres: torch.Tensor | None = None,
+                 focused: int = 0) -> torch.Tensor:
     """x: (B, C, R, R) -> (B * count, C, size, size): ``count`` crops of each sample (sample-major), at positions
-    drawn uniformly from the global torch RNG. Differentiable (slices)."""
-    if x.ndim != 4 or x.shape[-1] != x.shape[-2] or not 1 <= size <= x.shape[-1] or count < 1:
+    drawn uniformly from the global torch RNG. The first ``focused`` of each sample's crops are instead centred on a
+    texel drawn from ``centres`` ((N, 2) long (row, column) texels), shifted inside the map at its edges.
+    Differentiable (slices)."""
+    R = x.shape[-1]
+    if x.ndim != 4 or x.shape[-1] != x.shape[-2] or not 1 <= size <= R or count < 1:
         raise ValueError(f"expected (B, C, R, R) maps with R >= size and count >= 1, got {tuple(x.shape)}, size {size}, "
                          f"count {count}")
-    corners = torch.randint(0, x.shape[-1] - size + 1, (x.shape[0], count, 2)).tolist()
-    return torch.stack([x[i, :, y : y + size, u : u + size] for i, row in enumerate(corners) for y, u in row])
+    if not 0 <= focused <= count:
+        raise ValueError(f"expected 0 <= focused <= count ({count}), got {focused}")
+    corners = torch.randint(0, R - size + 1, (x.shape[0], count, 2))
+    if focused:
+        if centres is None or centres.ndim != 2 or centres.shape[1] != 2 or len(centres) == 0:
+            raise ValueError(f"focused crops need centres of shape (N >= 1, 2), got "
+                             f"{None if centres is None else tuple(centres.shape)}")
+        pick = centres[torch.randint(0, len(centres), (x.shape[0], focused))]
+        corners[:, :focused] = (pick - size // 2).clamp(0, R - size)
+    return torch.stack([x[i, :, y : y + size, u : u + size] for i, row in enumerate(corners.tolist()) for y, u in row])
+
+
+@functools.lru_cache(maxsize=4)
+def focus_texels(resolution: int) -> torch.Tensor:
+    """(N, 2) long (row, column): where the person test's tells are, the focused local-D crops' centres: the data's
+    hairline and the scalp behind it (``data.hairline_reach``) and its beard zone (``data.beard_zone``)."""
+    return torch.nonzero(hairline_reach(resolution) | beard_zone(resolution))
 
 
 def _g_param_groups(G: Generator, train: TrainSettings) -> list[dict]:
@@ -989,7 +1014,9 @@ def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
 def _patch_crops(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     """The local D's input: ``random_crops`` of ``img`` after ADA's augmentation (drawn apart from D's)."""
     t = state.train
-    crops = random_crops(_augmented(state, img), t.patch_size, t.patch_count)
+    focused = round(t.patch_focus * t.patch_count)
+    centres = focus_texels(img.shape[-1]) if focused else None
+    crops = random_crops(_augmented(state, img), t.patch_size, t.patch_count, centres, focused)
     return crops.contiguous(memory_format=torch.channels_last) if t.channels_last else crops
 
 
