@@ -1014,6 +1014,8 @@ def _d(state: TrainState, img: torch.Tensor) -> torch.Tensor:
 def _patch_crops(state: TrainState, img: torch.Tensor) -> torch.Tensor:
     """The local D's input: ``random_crops`` of ``img`` after ADA's augmentation (drawn apart from D's)."""
     t = state.train
+    # focused crops are placed by the layout's texels, after ADA: its x-flip mirrors a near-symmetric focus and its
+    # roll moves the tells by at most R / 16 (16 texels at 256^2), within half of a 64^2 crop
     focused = round(t.patch_focus * t.patch_count)
     centres = focus_texels(img.shape[-1]) if focused else None
     crops = random_crops(_augmented(state, img), t.patch_size, t.patch_count, centres, focused)
