@@ -186,7 +186,9 @@ def test_focused_crops_are_centred_on_the_given_texels_and_shifted_inside_at_the
     torch.manual_seed(0)
     assert torch.equal(random_crops(x, 3, 5, centres, focused=3), crops)  # the global RNG, as the uniform crops
     torch.manual_seed(0)
-    assert torch.equal(random_crops(x, 3, 5, centres, focused=0), (torch.manual_seed(0), random_crops(x, 3, 5))[1])
+    uniform = random_crops(x, 3, 5)
+    torch.manual_seed(0)
+    assert torch.equal(random_crops(x, 3, 5, centres, focused=0), uniform)  # focused 0: the centres are not used
     with pytest.raises(ValueError, match=r"expected 0 <= focused <= count \(5\), got 6"):
         random_crops(x, 3, 5, centres, focused=6)
     for bad in (None, torch.zeros(0, 2, dtype=torch.long), torch.zeros(3, dtype=torch.long)):
@@ -203,8 +205,8 @@ def test_focus_texels_are_the_hairline_reach_and_the_beard_zone(models_root):
     mask[t[:, 0], t[:, 1]] = True
     assert t.dtype == torch.long and t.shape[1] == 2 and len(t) == int(mask.sum())  # no texel twice
     assert torch.equal(mask, hairline_reach(64) | beard_zone(64))
-    rows = t[:, 0].float()
-    assert rows.min() < 20 and rows.max() > 40  # the hairline above the eyes, the beard below the mouth
+    # the layout's hairline lies above (lower rows than) its beard zone: mean rows 28.8 and 38.7 at 64^2
+    assert torch.nonzero(hairline_reach(64))[:, 0].float().mean() < torch.nonzero(beard_zone(64))[:, 0].float().mean() - 5
 
 
 def test_patch_focus_centres_that_share_of_the_local_d_crops_on_the_focus_texels(models_root, monkeypatch):
