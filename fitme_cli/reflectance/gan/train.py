@@ -480,10 +480,10 @@ def random_crops(x: torch.Tensor, size: int, count: int, centres: torch.Tensor |
     drawn uniformly from the global torch RNG. The first ``focused`` of each sample's crops are instead centred on a
     texel drawn from ``centres`` ((N, 2) long (row, column) texels), shifted inside the map at its edges.
     Differentiable (slices)."""
-    R = x.shape[-1]
-    if x.ndim != 4 or x.shape[-1] != x.shape[-2] or not 1 <= size <= R or count < 1:
+    if x.ndim != 4 or x.shape[-1] != x.shape[-2] or not 1 <= size <= x.shape[-1] or count < 1:
         raise ValueError(f"expected (B, C, R, R) maps with R >= size and count >= 1, got {tuple(x.shape)}, size {size}, "
                          f"count {count}")
+    R = x.shape[-1]
     if not 0 <= focused <= count:
         raise ValueError(f"expected 0 <= focused <= count ({count}), got {focused}")
     corners = torch.randint(0, R - size + 1, (x.shape[0], count, 2))
@@ -500,7 +500,7 @@ def random_crops(x: torch.Tensor, size: int, count: int, centres: torch.Tensor |
 def focus_texels(resolution: int) -> torch.Tensor:
     """(N, 2) long (row, column): where the person test's tells are, the focused local-D crops' centres: the data's
     hairline and the scalp behind it (``data.hairline_reach``) and its beard zone (``data.beard_zone``)."""
-    return torch.nonzero(hairline_reach(resolution) | beard_zone(resolution))
+    return torch.nonzero(_hairline_masks(resolution)[0] | _beard_zone(resolution))  # the terms' cached masks
 
 
 def _g_param_groups(G: Generator, train: TrainSettings) -> list[dict]:
