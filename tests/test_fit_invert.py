@@ -137,6 +137,31 @@ def test_effects_forced_without_the_selector_get_their_lights(models_root, force
     assert all(np.isfinite(list(h.values())).all() for h in res.history)
 
 
+@pytest.mark.parametrize("one_colour", [True, False])
+def test_the_sh_environment_is_fitted_in_one_colour(models_root, one_colour):
+    from fitme_cli.perception.dlib_resnet import load_dlib_resnet
+    from fitme_cli.shape.model import load_shape_model
+
+    torch.manual_seed(3)
+    sm = load_shape_model(models_root)
+    G = Generator(GanSettings(resolution=16, branch_resolution=16, channel_base=64, channel_max=16, z_dim=16, w_dim=16))
+    sh = torch.zeros(1, 9, 3)
+    sh[0, 0] = 1.8
+    sh[0, 3] = torch.tensor([0.9, -0.6, 0.0])  # red from one side, green from the other
+    lights = Lights(torch.full((1, 3), 0.5), torch.tensor([[[0.0, 0.0, 1.0]]]), torch.full((1, 1, 3), 0.3), sh=sh)
+    with torch.no_grad():
+        maps = decode_maps(G.synthesis(G.w_avg.view(1, 1, -1).repeat(1, G.settings.num_ws, 1), noise_mode="const"), G.settings)
+    p, _, _ = _synthetic_photo(sm, 64, maps, lights, Effects(specular=False, subsurface=False, sh_ambient=True))
+    s = InversionSettings(iterations=8, lr=0.05, render_size=64, coarse_resolution=8, select_effects=False,
+                          effects=Effects(specular=False, subsurface=False, sh_ambient=True), sh_one_colour=one_colour,
+                          lambdas=(100.0, 0.5, 0.0, 0.0, 5e-2, 5e-4, 5e-4))
+    fitted = invert([p], G, sm, load_dlib_resnet(models_root), sm.landmarks, np.arange(10), s).lights.sh[0]
+    # each coefficient's colour against band 0's: one colour leaves none; free, the photo's red-green gradient shows
+    c0 = fitted[0] / fitted[0].mean()
+    off = (fitted[1:] - fitted[1:].mean(-1, keepdim=True) * c0).abs().max()
+    assert (off < 1e-3) if one_colour else (off > 0.05)
+
+
 def test_start_jitter_nudges_only_the_start_and_is_seeded(models_root):
     from fitme_cli.perception.dlib_resnet import load_dlib_resnet
 

@@ -104,3 +104,38 @@ def test_each_effect_changes_the_image(models_root):
     for name in EFFECT_NAMES:
         img = r(out.vertices, out.normals, out.tangents, maps, cam, lights, Effects(**{n: n == name for n in EFFECT_NAMES})).image
         assert (img - ref).abs().max() > 1e-3, name
+
+
+def test_single_colour_sh_known_values_and_bad_input():
+    from fitme_cli.render.lights import single_colour_sh
+
+    sh = torch.zeros(2, 9, 3)
+    sh[0, 0] = torch.tensor([2.0, 1.0, 0.0])  # band 0: warm; chromaticity (2, 1, 0) / 1 (+ eps)
+    sh[0, 3] = torch.tensor([0.0, 0.6, 0.0])  # a green-only gradient: grey level 0.2
+    sh[1] = 0.7  # grey: unchanged
+    out = single_colour_sh(sh, eps=0.0)
+    torch.testing.assert_close(out[0, 0], torch.tensor([2.0, 1.0, 0.0]))
+    torch.testing.assert_close(out[0, 3], torch.tensor([0.4, 0.2, 0.0]))  # the gradient now in band 0's colour
+    assert (out[0, [1, 2, 4, 5, 6, 7, 8]] == 0).all()
+    torch.testing.assert_close(out[1], sh[1])
+    torch.testing.assert_close(out.mean(-1), sh.mean(-1))  # each coefficient keeps its grey level
+    black = single_colour_sh(torch.zeros(1, 9, 3).index_fill_(1, torch.tensor([2]), 0.3))
+    torch.testing.assert_close(black[0, 2], torch.full((3,), 0.3))  # a black band 0 gives a grey environment
+    for bad in (torch.zeros(9, 3), torch.zeros(1, 4, 3), torch.zeros(1, 9, 1)):
+        with pytest.raises(ValueError, match=r"expected \(B, 9, 3\)"):
+            single_colour_sh(bad)
+
+
+def test_single_colour_sh_keeps_every_direction_in_one_colour_and_gradcheck():
+    from fitme_cli.render.lights import sh_basis, single_colour_sh
+
+    g = torch.Generator().manual_seed(0)
+    sh = torch.randn(3, 9, 3, generator=g, dtype=torch.float64) * 0.3
+    sh[:, 0] = sh[:, 0].abs() + 1.0
+    n = torch.nn.functional.normalize(torch.randn(3, 500, 3, generator=g, dtype=torch.float64), dim=-1)
+    irr = torch.einsum("bnk,bkc->bnc", sh_basis(n), single_colour_sh(sh))
+    chroma = (sh[:, 0].clamp(min=0) + 1e-4) / (sh[:, 0].clamp(min=0) + 1e-4).mean(-1, keepdim=True)
+    torch.testing.assert_close(irr, irr.mean(-1, keepdim=True) * chroma[:, None])  # every normal lit in one colour
+    free = torch.einsum("bnk,bkc->bnc", sh_basis(n), sh)
+    assert not torch.allclose(free, free.mean(-1, keepdim=True) * chroma[:, None], atol=1e-3)  # the input was not
+    assert torch.autograd.gradcheck(single_colour_sh, (sh.clone().requires_grad_(True),))

@@ -26,6 +26,7 @@ from ..reflectance.maps import ReflectanceMaps
 from ..render import Camera, Effects, Lights, Renderer
 from ..render.effects import EffectChoice, SelectorSettings, select_effects
 from ..render.camera import focal_px_from_35mm, project
+from ..render.lights import single_colour_sh
 from ..render.shading import srgb_to_linear
 from ..shape.regions import REGIONS
 from .losses import identity_loss, landmark_loss, mean_colour_loss, perceptual_loss, photometric_loss, w_prior
@@ -66,6 +67,9 @@ class InversionSettings:
     w_prior: str = "pnorm"
     effects: Effects = field(default_factory=Effects)  # the effects when ``select_effects`` is off
     select_effects: bool = True  # choose the effects from the photos and the fit so far
+    # not in the paper: the SH environment in one colour (``render.lights.single_colour_sh``); free, it
+    # lit the sides green and the underside magenta, where the skin mask does not reach
+    sh_one_colour: bool = True
     select_fraction: float = 0.4  # the selector runs after this share of the iterations
     forced_effects: tuple[tuple[str, bool], ...] = ()  # user overrides, (name, on) pairs; always win
     selection_steps: int = 8  # Adam steps that fit a candidate second light or SH environment
@@ -391,6 +395,8 @@ def invert(photos: list[PhotoInput], G: Generator, shape_model, descriptor, land
         if d2 is not None:
             dirs = torch.cat([dirs, torch.nn.functional.normalize(d2, dim=-1)[:, None]], 1)
             cols = torch.cat([cols, c2.clamp(min=0)[:, None]], 1)
+        if sh is not None and s.sh_one_colour:
+            sh = single_colour_sh(sh)
         return Lights(ambient.clamp(min=0), dirs, cols, sh=sh)
 
     def select(maps):

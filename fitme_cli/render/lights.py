@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-__all__ = ["Lights", "sh_basis"]
+__all__ = ["Lights", "sh_basis", "single_colour_sh"]
 
 
 @dataclass(frozen=True)
@@ -70,3 +70,19 @@ def sh_basis(n: torch.Tensor) -> torch.Tensor:
     c4 = 0.25 * math.sqrt(15 / math.pi)
     return torch.stack([torch.full_like(x, c0), c1 * y, c1 * z, c1 * x, c2 * x * y, c2 * y * z,
                         c3 * (3 * z * z - 1), c2 * x * z, c4 * (x * x - y * y)], -1)
+
+
+def single_colour_sh(sh: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
+    """(B, 9, 3) SH irradiance coefficients (linear RGB) -> the same environment in one colour: each
+    coefficient's grey level (its mean over RGB) times band 0's chromaticity (its RGB over their mean,
+    negative parts cut, ``eps`` added so that a black band 0 gives grey).
+
+    Why: fitted freely, the 27 coefficients meet the photo only where the photometric mask is, the
+    front of the face. Toward the silhouette and under the nose and jaw the three channels' separate
+    extrapolations cross zero at different places, and the render turns green at the sides and magenta
+    underneath (docs/fitting.md, "One colour for the SH environment"). A grey environment is unchanged;
+    band 0 keeps its colour (up to ``eps``)."""
+    if sh.ndim != 3 or tuple(sh.shape[1:]) != (9, 3):
+        raise ValueError(f"single_colour_sh: expected (B, 9, 3) coefficients, got {tuple(sh.shape)}")
+    c0 = sh[:, :1].clamp(min=0) + eps
+    return sh.mean(-1, keepdim=True) * (c0 / c0.mean(-1, keepdim=True))
