@@ -1166,6 +1166,86 @@ def test_tone_band_weight_moves_the_fakes_bands(tmp_path):
     _assert_region_term_refusals("tone_band", data, tmp_path)
 
 
+def test_log_chroma_known_values_brightness_gradients_and_bad_input():
+    """Grey is 0 on both axes; (0.4, 0.2, 0.1) is (log 2, log(sqrt(0.08) / 0.1)); a scale of all three channels
+    leaves it; float64 gradcheck; non-albedo input refused."""
+    from fitme_cli.reflectance.gan.metrics import log_chroma
+
+    grey = torch.full((1, 3, 2, 2), 0.3)
+    torch.testing.assert_close(log_chroma(grey), torch.zeros(1, 2, 2, 2))
+    warm = torch.tensor([0.4, 0.2, 0.1]).view(1, 3, 1, 1)
+    torch.testing.assert_close(log_chroma(warm).flatten(), torch.tensor([math.log(2), math.log(0.08 ** 0.5 / 0.1)]))
+    x = 0.05 + torch.rand(2, 3, 4, 4, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(log_chroma(x * 0.37), log_chroma(x))
+    assert torch.autograd.gradcheck(log_chroma, (x.double().requires_grad_(True),))
+    with pytest.raises(ValueError, match=r"expected float \(N, 3, H, W\) linear albedo, got \(2, 4, 4, 4\)"):
+        log_chroma(torch.rand(2, 4, 4, 4))
+    with pytest.raises(ValueError, match=r"got \(2, 3, 4, 4\) torch.int64"):
+        log_chroma(torch.ones(2, 3, 4, 4, dtype=torch.long))
+
+
+def test_chroma_bands_see_blotches_of_colour_not_of_brightness():
+    """A blotch of grey shading moves the tone bands and leaves the chroma bands; a blotch of colour at the same
+    luminance moves the chroma bands. Entries land in the batch's tone halves as the tone-band term's; odd batches and
+    regions without skin or forehead are refused; float64 gradcheck; the data target is over whole batches."""
+    from fitme_cli.reflectance.gan.metrics import log_chroma, region_band_energy
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands, _albedo_tone_bands, _data_target
+
+    regions = _two_regions()
+    g = torch.Generator().manual_seed(0)
+    albedo = (0.05 + 0.02 * torch.rand(4, 3, 16, 16, generator=g)) * torch.tensor([4.0, 1.0, 6.0, 2.0]).view(4, 1, 1, 1)
+    spec, nrm = torch.full((4, 1, 16, 16), 0.1), torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(4, 3, 16, 16)
+    enc = lambda a: encode_maps(ReflectanceMaps(a, spec, nrm), TINY).cat()  # noqa: E731
+    x = enc(albedo)
+    blotch = torch.zeros(1, 1, 16, 16)
+    blotch[..., 4:8, 3:7] = 1
+    shaded = enc(albedo * (1 - 0.4 * blotch))
+    tinted = enc(albedo * (1 + 0.3 * blotch * torch.tensor([1.0, -1.0, 0.0]).view(1, 3, 1, 1)))
+    base, tone_base = _albedo_chroma_bands(x, regions, 2), _albedo_tone_bands(x, regions, 2)
+    assert base.shape == (4, 2 * 2 * 2 * 2)  # halves, regions, levels, two chroma axes
+    torch.testing.assert_close(_albedo_chroma_bands(shaded, regions, 2), base, rtol=2e-3, atol=2e-4)
+    assert float((_albedo_tone_bands(shaded, regions, 2) - tone_base).abs().max()) > 0.05
+    assert float((_albedo_chroma_bands(tinted, regions, 2) - base).abs().max()) > 0.05
+    bands = region_band_energy(log_chroma(decode_albedo(x[:, :3])), regions, 2).flatten(1)
+    m = bands.shape[1]
+    torch.testing.assert_close(base[[1, 3], :m], 2 * bands[[1, 3]])  # samples 1 and 3 the darker half
+    torch.testing.assert_close(base[[0, 2], m:], 2 * bands[[0, 2]])
+    assert (base[[1, 3], m:] == 0).all() and (base[[0, 2], :m] == 0).all()
+    x64 = x[:2].double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: _albedo_chroma_bands(t, regions, 1), (x64,))
+    with pytest.raises(ValueError, match="_albedo_chroma_bands needs an even batch to halve, got 3"):
+        _albedo_chroma_bands(x[:3], regions, 2)
+    no_face = torch.where(regions == 2, torch.tensor(5, dtype=torch.uint8), regions)
+    with pytest.raises(ValueError, match=r"_albedo_chroma_bands needs a skin \(1\) or forehead \(2\) region"):
+        _albedo_chroma_bands(x, no_face, 2)
+    data = _tiny_data(n=15)
+    f = lambda y, r: _albedo_chroma_bands(y, r, 2)  # noqa: E731
+    expected = torch.stack([f(data[i:i + 4].float(), regions).mean(0) for i in (0, 4, 8)]).mean(0)
+    torch.testing.assert_close(_data_target("chroma_band", f, data, regions, 4), expected)
+
+
+def test_chroma_band_weight_moves_the_fakes_chroma_bands(tmp_path):
+    """Pulled up, the fakes' chroma bands grow, pulled down they shrink; refusals as every per-region term's."""
+    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands
+
+    data = _tiny_data()
+    regions = _two_regions()
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    measure = lambda y, r: _albedo_chroma_bands(y, r, TrainSettings().band_levels)  # noqa: E731
+
+    def run(weight, scale):
+        base, now, out = _pulled("chroma_band", weight, measure, lambda b: b * scale, regions, data, z)
+        return float((now / base.clamp_min(1e-6)).mean()), out
+
+    off, l_off = run(0.0, 1.0)
+    up, l_up = run(5.0, 6.0)
+    down, _ = run(5.0, 0.5)
+    assert up > off * 1.2 and down < off / 1.2, (up, off, down)
+    assert "chroma_band_gap" not in l_off[0] and l_up[0]["chroma_band_gap"] == pytest.approx(5 / 6, abs=0.05)
+    _assert_region_term_refusals("chroma_band", data, tmp_path)
+
+
 def test_colour_weight_moves_the_fakes_region_colour(tmp_path):
     """Same seed, same steps: with the colour term G's per-region albedo means move toward targets above and
     below where they start; it needs its regions and target, and bad settings are refused."""
@@ -2277,7 +2357,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--threads", "1"])
@@ -2305,6 +2385,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.mean_map_weight == 0.01 and lines[-1]["mean_map_gap"] > 0 and "mean_map_gap" not in lines[0]
     assert state.train.tone_order_weight == 0.1 and lines[-1]["tone_order_gap"] > 0 and "tone_order_gap" not in lines[0]
     assert state.train.tone_band_weight == 0.5 and lines[-1]["tone_band_gap"] > 0 and "tone_band_gap" not in lines[0]
+    assert state.train.chroma_band_weight == 0.5 and lines[-1]["chroma_band_gap"] > 0 and "chroma_band_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -2447,7 +2528,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "strand_coherence_albedo_normal_x", "interpolation_max_over_mean_step", "albedo_band_ratio_hairline",
                       "albedo_band_ratio_by_side", "albedo_normal_relief_by_region", "albedo_moment_ratio_by_region",
                       "albedo_band_ratio_features", "beard_hair_share", "crown_flow",
-                      "mean_map_abs_diff", "detail_map_log2_ratio"}
+                      "mean_map_abs_diff", "detail_map_log2_ratio", "albedo_chroma_band_ratio_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -2480,6 +2561,9 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     coh = m["strand_coherence_albedo_normal_x"]
     assert set(coh) == set(m["region_albedo_q10_q50_q90"]) == set(m["albedo_band_ratio_by_region"])
     assert all(len(v) == 3 and all(np.isfinite(b) and b > 0 for b in v) for v in m["albedo_band_ratio_by_region"].values())
+    chroma = m["albedo_chroma_band_ratio_by_region"]
+    assert set(chroma) == set(m["albedo_band_ratio_by_region"])
+    assert all(len(v) == 3 and all(np.isfinite(b) and b >= 0 for b in v) for v in chroma.values())
     assert all(len(v) == 2 and all(0 <= c <= 1 for c in v) for r in coh.values() for v in r.values())
     spec = m["albedo_spectrum_tv_by_region"]  # only the regions with a whole 16^2 window at 64^2
     assert spec and set(spec) < set(coh) and "lips" not in spec

@@ -44,7 +44,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
-           "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map"]
+           "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
+           "log_chroma"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -553,3 +554,12 @@ def strand_coherence(phys: torch.Tensor, regions: torch.Tensor, sigma: float = 1
         raise ValueError(f"expected (N, 7, R, R) maps and (R, R) regions, got {tuple(phys.shape)} and {tuple(regions.shape)}")
     # every sample has as many texels in a region, so the mean of the samples' region means is the region's
     return torch.stack([region_coherence(m, regions, sigma).double().mean(0) for m in (phys[:, :3].mean(1), phys[:, 4])], 1).numpy()
+
+
+def log_chroma(albedo: torch.Tensor) -> torch.Tensor:
+    """(N, 3, H, W) linear albedo -> (N, 2, H, W): log r - log g and (log r + log g) / 2 - log b (each floored at
+    1e-3): opponent axes, red-green and yellow-blue, that a change of brightness (a scale of all three) leaves alone."""
+    if albedo.ndim != 4 or albedo.shape[1] != 3 or not albedo.is_floating_point():
+        raise ValueError(f"log_chroma: expected float (N, 3, H, W) linear albedo, got {tuple(albedo.shape)} {albedo.dtype}")
+    r, g, b = albedo.clamp_min(1e-3).log().unbind(1)
+    return torch.stack([r - g, (r + g) / 2 - b], 1)

@@ -18,7 +18,7 @@ from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, bear
                    hairline_zones, load_dataset, load_regions, split_sides)
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_region, feature_parts, frechet_distance, hair_share,
-                      interpolation_smoothness, modality_consistency, reflectance_features, region_albedo,
+                      interpolation_smoothness, log_chroma, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence)
 from .networks import GanImages, Generator, decode_maps
@@ -85,6 +85,7 @@ class _Side:
     crown: torch.Tensor | None  # (N, 2, 32) ``metrics.crown_flow`` of the albedo's luminance; None below 128^2
     mean_maps: tuple[torch.Tensor, torch.Tensor]  # (7, R, R) float64 mean maps of the first and the second half
     detail_maps: tuple[torch.Tensor, torch.Tensor]  # (3, R, R) float64 mean ``metrics.detail_map`` of each half
+    chroma_bands: torch.Tensor  # (k, 3 bands) band RMS of ``metrics.log_chroma`` per region (mean of its two axes)
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
@@ -92,7 +93,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
              beard: torch.Tensor) -> _Side:
     """One side of the comparison (generated when src is None); ``features``: the regions with the eye openings and
     brow edges carved in (``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``); ``beard``: ``data.beard_zone``."""
-    st, fs, cm, sp, hz, sd, rl, mo, fb, bs, cr = _Stats(mapped), [], [], [], [], [], [], [], [], [], []
+    st, fs, cm, sp, hz, sd, rl, mo, fb, bs, cr, ch = _Stats(mapped), [], [], [], [], [], [], [], [], [], [], []
     sums, dsums, counts, seen = [0.0, 0.0], [0.0, 0.0], [0, 0], 0
     for net, x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
@@ -111,6 +112,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         mo.append(region_moments(x[:, :3], features))
         fb.append(region_band_energy(x[:, :3], features).mean(3))
         bs.append(hair_share(x[:, :3], beard))
+        ch.append(region_band_energy(log_chroma(x[:, :3]), regions).mean(3))
         if x.shape[-1] % 128 == 0:  # the crown window's bins are R / 128 texels
             cr.append(crown_flow(x[:, :3].mean(1)))
         if sum(len(c) for c in cm) < 200:
@@ -120,7 +122,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
                  strand_coherence(first, regions), torch.cat(sp), torch.cat(hz).mean(0), torch.cat(sd).mean(0),
                  torch.cat(rl).mean(0), torch.cat(mo).mean(0), torch.cat(fb).mean(0), torch.cat(bs),
                  torch.cat(cr) if cr else None, (sums[0] / max(counts[0], 1), sums[1] / max(counts[1], 1)),
-                 (dsums[0] / max(counts[0], 1), dsums[1] / max(counts[1], 1)))
+                 (dsums[0] / max(counts[0], 1), dsums[1] / max(counts[1], 1)), torch.cat(ch).mean(0))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -239,6 +241,11 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "albedo_band_ratio_features": {_region_name(lab): [round(float(g / max(float(d), 1e-12)), 3)
                                                            for g, d in zip(gan.feature_bands[flabels.index(lab)], real.feature_bands[flabels.index(lab)])]
                                        for lab in (EYE_LABEL, BROW_EDGE_LABEL) if lab in flabels},
+        # blotches of colour (the 239.00 kimg person test's hazy, blotchy faces, docs/brdf_gan.md): per region and band
+        # (finest first), G's RMS of the albedo's log chromaticity over the data's (mean of red-green and yellow-blue)
+        "albedo_chroma_band_ratio_by_region": {_region_name(lab): [round(float(g / max(float(d), 1e-12)), 3)
+                                                                   for g, d in zip(gan.chroma_bands[j], real.chroma_bands[j])]
+                                               for j, lab in enumerate(region_labels(regions))},
         # beards are there or not in the data, and a G can lose them while every mean above holds (docs/brdf_gan.md):
         # per sample, the share of the beard zone that reads as hair (``metrics.hair_share``)
         "beard_hair_share": {"data": _beard_shares(real.beard), "gan": _beard_shares(gan.beard)},
