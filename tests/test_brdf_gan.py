@@ -1144,26 +1144,28 @@ def test_tone_bands_split_the_band_rms_by_the_batchs_tone_halves():
     torch.testing.assert_close(_data_target("tone_band", f, data, regions, 4), expected)
 
 
-def test_tone_band_weight_moves_the_fakes_bands(tmp_path):
-    """Pulled up, both halves' band RMS grows, pulled down it shrinks; it needs its regions and target, and bad
-    settings are refused."""
-    from fitme_cli.reflectance.gan.train import _albedo_tone_bands
+@pytest.mark.parametrize("name", ["tone_band", "chroma_band"])
+def test_tone_and_chroma_band_weights_move_the_fakes_bands(name, tmp_path):
+    """Pulled up, both halves' band RMS (of the log albedo, or of its log chromaticity) grows, pulled down it
+    shrinks; it needs its regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands, _albedo_tone_bands
 
     data = _tiny_data()
     regions = _two_regions()
     z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
-    measure = lambda y, r: _albedo_tone_bands(y, r, TrainSettings().band_levels)  # noqa: E731
+    bands = {"tone_band": _albedo_tone_bands, "chroma_band": _albedo_chroma_bands}[name]
+    measure = lambda y, r: bands(y, r, TrainSettings().band_levels)  # noqa: E731
 
     def run(weight, scale):
-        base, now, out = _pulled("tone_band", weight, measure, lambda b: b * scale, regions, data, z)
-        return float((now / base).mean()), out
+        base, now, out = _pulled(name, weight, measure, lambda b: b * scale, regions, data, z)
+        return float((now / base.clamp_min(1e-6)).mean()), out
 
     off, l_off = run(0.0, 1.0)
     up, l_up = run(5.0, 6.0)  # without the term the grain grows about 4x in these steps, as the band term's test
     down, _ = run(5.0, 0.5)
     assert up > off * 1.2 and down < off / 1.2, (up, off, down)
-    assert "tone_band_gap" not in l_off[0] and l_up[0]["tone_band_gap"] == pytest.approx(5 / 6, abs=0.05)
-    _assert_region_term_refusals("tone_band", data, tmp_path)
+    assert f"{name}_gap" not in l_off[0] and l_up[0][f"{name}_gap"] == pytest.approx(5 / 6, abs=0.05)
+    _assert_region_term_refusals(name, data, tmp_path)
 
 
 def test_log_chroma_known_values_brightness_gradients_and_bad_input():
@@ -1223,27 +1225,6 @@ def test_chroma_bands_see_blotches_of_colour_not_of_brightness():
     f = lambda y, r: _albedo_chroma_bands(y, r, 2)  # noqa: E731
     expected = torch.stack([f(data[i:i + 4].float(), regions).mean(0) for i in (0, 4, 8)]).mean(0)
     torch.testing.assert_close(_data_target("chroma_band", f, data, regions, 4), expected)
-
-
-def test_chroma_band_weight_moves_the_fakes_chroma_bands(tmp_path):
-    """Pulled up, the fakes' chroma bands grow, pulled down they shrink; refusals as every per-region term's."""
-    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands
-
-    data = _tiny_data()
-    regions = _two_regions()
-    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
-    measure = lambda y, r: _albedo_chroma_bands(y, r, TrainSettings().band_levels)  # noqa: E731
-
-    def run(weight, scale):
-        base, now, out = _pulled("chroma_band", weight, measure, lambda b: b * scale, regions, data, z)
-        return float((now / base.clamp_min(1e-6)).mean()), out
-
-    off, l_off = run(0.0, 1.0)
-    up, l_up = run(5.0, 6.0)
-    down, _ = run(5.0, 0.5)
-    assert up > off * 1.2 and down < off / 1.2, (up, off, down)
-    assert "chroma_band_gap" not in l_off[0] and l_up[0]["chroma_band_gap"] == pytest.approx(5 / 6, abs=0.05)
-    _assert_region_term_refusals("chroma_band", data, tmp_path)
 
 
 def test_colour_weight_moves_the_fakes_region_colour(tmp_path):
