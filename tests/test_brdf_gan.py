@@ -394,18 +394,21 @@ def test_set_learning_rates_after_a_resume_change():
     assert state.opt_D.param_groups[0]["lr"] == pytest.approx(0.0005 * 16 / 17)
 
 
-def test_top_layers_learning_rate_multiplier():
-    """G's output-resolution layers step g_top_lr_mul times further; Adam's groups keep G.parameters()' order
-    (checkpoints index Adam's state by it) and do not depend on the multiplier, so it may change on resume."""
+@pytest.mark.parametrize("top_from, top_tags", [(0, (".b16.",)), (8, (".b8.", ".b16."))])
+def test_top_layers_learning_rate_multiplier(top_from, top_tags):
+    """G's blocks from g_top_lr_from (0: the output resolution) up step g_top_lr_mul times further; Adam's groups
+    keep G.parameters()' order (checkpoints index Adam's state by it) and do not depend on the settings, so the
+    multiplier and where it starts may change on resume."""
     from fitme_cli.reflectance.gan.train import set_learning_rates
 
-    state = new_state(TINY, TrainSettings(batch=4, kimg=1, g_lr=0.001, g_top_lr_mul=5.0))
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, g_lr=0.001, g_top_lr_mul=5.0, g_top_lr_from=top_from))
     G = state.G.double()  # float64: the mapping stores its weights x 100 (lr_mul), where float32 cannot resolve a step
     groups = state.opt_G.param_groups
     assert [id(p) for g in groups for p in g["params"]] == [id(p) for p in G.parameters()]
-    top = {id(p) for n, p in G.named_parameters() if ".b16." in n}
-    assert top and top == {id(p) for g in groups if g["top"] for p in g["params"]}
-    assert {g["lr"] for g in groups if g["top"]} == {0.005} and {g["lr"] for g in groups if not g["top"]} == {0.001}
+    assert [g["res"] for g in groups] == [0, 4, 8, 16, 8, 16, 8, 16]  # mapping and const, the trunk, each branch
+    top = {id(p) for n, p in G.named_parameters() if any(t in n for t in top_tags)}
+    assert top == {id(p) for g in groups if g["lr"] == 0.005 for p in g["params"]}
+    assert {g["lr"] for g in groups} == {0.005, 0.001}
     before = {n: p.detach().clone() for n, p in G.named_parameters()}
     gen = torch.Generator().manual_seed(0)
     for p in G.parameters():
@@ -414,7 +417,11 @@ def test_top_layers_learning_rate_multiplier():
     # Adam's first step with beta1 = 0 moves every element by lr * g / (|g| + eps): the group's rate
     for n, p in G.named_parameters():
         step = (p.detach() - before[n]).abs()
-        torch.testing.assert_close(step, torch.full_like(step, 0.005 if ".b16." in n else 0.001), rtol=1e-3, atol=0)
+        want = 0.005 if any(t in n for t in top_tags) else 0.001
+        torch.testing.assert_close(step, torch.full_like(step, want), rtol=1e-3, atol=0)
+    state.train = dataclasses.replace(state.train, g_top_lr_from=4)
+    set_learning_rates(state)
+    assert [g["lr"] for g in state.opt_G.param_groups] == [0.001] + [0.005] * 7
     state.train = dataclasses.replace(state.train, g_top_lr_mul=1.0)
     set_learning_rates(state)
     assert {g["lr"] for g in state.opt_G.param_groups} == {0.001}
@@ -2213,6 +2220,48 @@ def test_blind_rounds_hide_eight_of_each_and_score_counts_hits(tmp_path):
     assert blind_main(["score", str(tmp_path), str(tmp_path / "guesses.json"), "--card", str(tmp_path / "no_card.json")]) == 2
     with pytest.raises(ValueError, match=r"expected data of shape \(N >= 8, 7, 16, 16\)"):
         make_rounds(G, data[:4], tmp_path)
+
+
+def test_blind_reference_sheets_show_data_the_rounds_do_not(tmp_path):
+    """A fresh judge's reference: data triplets kept out of every round, and the key written out of the judge's folder."""
+    import cv2
+
+    from fitme_cli.reflectance.gan.blind import _triplets, main as blind_main, make_rounds
+
+    G = Generator(TINY).eval()
+    data = _tiny_data(n=24)
+    data[:, :3] += torch.linspace(-0.5, 0.5, 24).view(24, 1, 1, 1)  # network space: ~5 sRGB levels apart
+    judge = tmp_path / "judge"
+    paths = make_rounds(G, data, judge, rounds=2, seed=5, reference=16, key_path=tmp_path / "key.json")
+    assert [p.name for p in paths[4:]] == ["reference_0.png", "reference_1.png"]
+    assert sorted(p.name for p in judge.iterdir()) == sorted(p.name for p in paths)  # no key beside the pictures
+    key = json.loads((tmp_path / "key.json").read_text())
+    ours = _triplets(GanImages.split(data.float()), G)
+    assert len({o.tobytes() for o in ours}) == 24  # every sample draws differently, so rows name their sample
+
+    def rows(path):
+        img = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+        return [img[2 + 20 * j : 18 + 20 * j] for j in range(img.shape[0] // 20)]
+
+    def sample(row, top=None):
+        found = [i for i, o in enumerate(ours) if np.array_equal(row[:top], o[:top])]
+        return found[0] if found else None
+
+    shown = {sample(row) for p in paths[4:] for row in rows(p)}
+    assert None not in shown and len(shown) == 16
+    in_rounds = set()
+    for p in paths[:4]:
+        rd, half = int(p.name[5]), "ab".index(p.name[7])
+        for j, row in enumerate(rows(p)):
+            if key[f"{rd}-{half * 8 + j}"] == "data":
+                in_rounds.add(sample(row, top=4))  # above the number
+    assert None not in in_rounds and len(in_rounds) >= 8 and not in_rounds & shown
+    (tmp_path / "guesses.json").write_text(json.dumps({"G": [k for k, v in key.items() if v == "G"]}))
+    assert blind_main(["score", str(tmp_path / "key.json"), str(tmp_path / "guesses.json")]) == 0  # a key file
+    with pytest.raises(ValueError, match=r"expected data of shape \(N >= 24, 7, 16, 16\)"):
+        make_rounds(G, data[:20], tmp_path / "small", reference=16)
+    with pytest.raises(ValueError, match="expected reference >= 0, got -1"):
+        make_rounds(G, data, tmp_path / "neg", reference=-1)
     with pytest.raises(ValueError, match="expected rounds >= 1, got 0"):
         make_rounds(G, data, tmp_path, rounds=0)
 
@@ -2378,7 +2427,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.spectrum_weight == 0.01 and lines[-1]["spectrum_gap"] == 0 and "spectrum_gap" not in lines[0]
     strengths = [float(p) for n, p in state.G_ema.named_parameters() if "branches" in n and n.endswith("noise_strength")]
     assert strengths and all(abs(v - 0.05) < 0.02 for v in strengths), strengths  # set, then a few steps of training
-    assert {g["lr"] for g in state.opt_G.param_groups if not g["top"]} == {0.001}
+    assert {g["lr"] for g in state.opt_G.param_groups if g["res"] < 16} == {0.001}
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--ema-kimg", "0"])
     assert r.exit_code == 2 and "--ema-kimg" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "h"), "--resolution", "16", "--hairline-region"])
@@ -2399,7 +2448,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.gan.channel_base == 128 and state.nimg == 20
     assert json.loads((run / "config.json").read_text())["gan"]["channel_base"] == 128
     r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--resolution", "32", "--kimg", "0.024", "--resume"])
-    assert r.exit_code == 2 and "only --channel-base, --channel-max and --g-channel-min may grow" in r.output
+    assert r.exit_code == 2 and "only --channel-base, --channel-max, --g-channel-min and --g-channel-base may grow" in r.output
     r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--d-joint-branch", "--kimg", "0.024", "--resume",
                                   "--threads", "1"])
     assert r.exit_code == 0, r.output
@@ -2422,6 +2471,19 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.gan.g_channel_min == 16 and state.nimg == 32
     assert state.G.synthesis.branches["albedo"]["b16"].conv1.weight.shape[:2] == (16, 16)
     assert state.D.albedo_branch.blocks[0].conv0.weight.shape[0] == 8  # D at 16x16 keeps its 8
+    # --g-channel-base widens G's middle layers and not D's; --g-top-lr-from moves the multiplier down to them
+    i = base.index("--channel-max")
+    base = [*base[:i], "--channel-max", "32", *base[i + 2:]]
+    r = CliRunner().invoke(main, [*base, "--channel-base", "128", "--g-channel-min", "16", "--g-channel-base", "256",
+                                  "--g-top-lr-mul", "3", "--g-top-lr-from", "8", "--kimg", "0.036", "--resume", "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "widened: G's 4x4 16 -> 32, G's 8x8 16 -> 32, D's 4x4 16 -> 32 channels" in r.output  # D: 128 / 4
+    state = load_checkpoint(run / "checkpoint.safetensors")
+    assert (state.gan.g_channel_base, state.train.g_top_lr_from, state.nimg) == (256, 8, 36)
+    assert {g["res"]: g["lr"] for g in state.opt_G.param_groups}[8] == pytest.approx(3 * state.train.g_lr)
+    assert state.D.albedo_branch.blocks[0].conv0.weight.shape[0] == 8
+    r = CliRunner().invoke(main, [*base, "--g-top-lr-from", "6", "--kimg", "0.04", "--resume"])
+    assert r.exit_code == 2 and "g_top_lr_from must be 0 or a power of two >= 4, got 6" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "other"), "--resume"])
     assert r.exit_code == 10 and "nothing to resume" in r.output
     r = CliRunner().invoke(main, ["train", str(tmp_path / "missing"), "-o", str(tmp_path / "x"), "--resolution", "16"])
@@ -2888,7 +2950,14 @@ def test_widening_keeps_what_g_and_d_compute_and_trains_the_new_channels():
     assert sum(p.numel() for g in wide.opt_G.param_groups for p in g["params"]) == sum(p.numel() for p in wide.G.parameters())
 
 
-def test_g_channel_min_widens_g_top_layers_only_and_keeps_what_g_computes():
+@pytest.mark.parametrize("grow, g_widths, block, shrunk, refusal", [
+    # a floor: G's 16x16 4 -> 8; 4x4 and 8x8 already have 16 and 8
+    ({"g_channel_min": 8}, [16, 8, 8], "b16", "G's 8 -> 4 at 16x16", "g_channel_min must be >= 1, got 0"),
+    # G's own base: 8x8 8 -> 16 (capped at channel_max 16), 16x16 4 -> 8
+    ({"g_channel_base": 128, "g_channel_min": 4}, [16, 16, 8], "b8", "G's 16 -> 8 at 8x8",
+     "g_channel_base must be >= 1 or None, got 0"),
+])
+def test_g_only_widening_keeps_d_and_what_g_computes(grow, g_widths, block, shrunk, refusal):
     from fitme_cli.reflectance.gan.widen import widen_state
 
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, channels_last=False))
@@ -2896,20 +2965,22 @@ def test_g_channel_min_widens_g_top_layers_only_and_keeps_what_g_computes():
         for p in state.G.parameters():
             p.add_(0.1 * torch.randn_like(p))
         state.G_ema.load_state_dict(state.G.state_dict())
-    floor = dataclasses.replace(TINY, g_channel_min=8)  # G's 16x16: 4 -> 8; 4x4 and 8x8 already have 16 and 8
-    assert [floor.g_channels(r) for r in floor.resolutions] == [16, 8, 8]
-    assert [floor.channels(r) for r in floor.resolutions] == [TINY.channels(r) for r in TINY.resolutions] == [16, 8, 4]
-    wide = widen_state(state, floor)
-    assert wide.G.synthesis.branches["albedo"]["b16"].conv1.weight.shape[:2] == (8, 8)
+    wider = dataclasses.replace(TINY, **grow)
+    assert [wider.g_channels(r) for r in wider.resolutions] == g_widths
+    assert [wider.channels(r) for r in wider.resolutions] == [TINY.channels(r) for r in TINY.resolutions] == [16, 8, 4]
+    wide = widen_state(state, wider)
+    c = g_widths[wider.resolutions.index(int(block[1:]))]
+    assert wide.G.synthesis.branches["albedo"][block].conv1.weight.shape[:2] == (c, c)
     assert {k: v.shape for k, v in wide.D.state_dict().items()} == {k: v.shape for k, v in state.D.state_dict().items()}
     z = torch.randn(3, TINY.z_dim)
     with torch.no_grad():
         torch.testing.assert_close(wide.G_ema(z, noise_mode="const").cat(), state.G_ema(z, noise_mode="const").cat(),
                                    rtol=1e-5, atol=1e-5)
-    with pytest.raises(ValueError, match=r"channels can only grow: G's 8 -> 4 at 16x16"):
+    with pytest.raises(ValueError, match=f"channels can only grow: {shrunk}"):
         widen_state(wide, TINY)
-    with pytest.raises(ValueError, match="g_channel_min must be >= 1, got 0"):
-        dataclasses.replace(TINY, g_channel_min=0)
+    with pytest.raises(ValueError, match=refusal):
+        dataclasses.replace(TINY, **{next(iter(grow)): 0})
+    assert [dataclasses.replace(TINY, g_channel_base=None).g_channels(r) for r in TINY.resolutions] == [16, 8, 4]
 
 
 def test_adding_the_joint_branch_keeps_d_and_trains_it():

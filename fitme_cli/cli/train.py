@@ -40,9 +40,10 @@ def _stop_requests():
 
 
 # flag -> (settings class name, field)
-_GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "g_channel_min", "mapping_layers",
-              "d_joint_branch")
-_TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "g_top_lr_mul", "ema_kimg",
+_GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "g_channel_min", "g_channel_base",
+              "mapping_layers", "d_joint_branch")
+_TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "g_top_lr_mul", "g_top_lr_from",
+                "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
@@ -64,6 +65,9 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 @click.option("--channel-max", type=int, help="May grow on --resume. [128]")
 @click.option("--g-channel-min", type=click.IntRange(min=1),
               help="A floor on G's channels at every resolution (widens G's top layers, not D's); may grow on --resume. [1]")
+@click.option("--g-channel-base", type=click.IntRange(min=1),
+              help="G's own channel base: G's channels at r are min(this / r, --channel-max), D's stay; may grow on "
+                   "--resume. [--channel-base]")
 @click.option("--mapping-layers", type=int, help="[2]")
 @click.option("--d-joint-branch/--no-d-joint-branch", default=None,
               help="A third D branch that sees albedos and normals together (not in the paper); may be added on --resume. [off]")
@@ -81,6 +85,9 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 @click.option("--g-top-lr-mul", type=click.FloatRange(min=0, min_open=True),
               help="G's layers at the output resolution train at this multiple of --g-lr, e.g. to let channels added by "
                    "--g-channel-min catch up; may change on --resume (not in the paper). [1]")
+@click.option("--g-top-lr-from", type=int,
+              help="--g-top-lr-mul applies to G's blocks from this resolution up (0: the output resolution's), e.g. the "
+                   "layers --g-channel-base widens; may change on --resume (not in the paper). [0]")
 @click.option("--ema-kimg", type=click.FloatRange(min=0, min_open=True),
               help="Half-life of the generator EMA (the shipped G) in kimg. [batch * 10 / 32]")
 @click.option("--moment-weight", type=click.FloatRange(min=0),
@@ -282,8 +289,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             try:
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
-                raise click.BadParameter(f"{e} (on --resume only --channel-base, --channel-max and --g-channel-min may "
-                                         "grow, and --d-joint-branch be added)") from None
+                raise click.BadParameter(f"{e} (on --resume only --channel-base, --channel-max, --g-channel-min and "
+                                         "--g-channel-base may grow, and --d-joint-branch be added)") from None
             grew = [f"{who}'s {r}x{r} {old(r)} -> {new(r)}" for who, old, new in
                     (("G", before.g_channels, state.gan.g_channels), ("D", before.channels, state.gan.channels))
                     for r in before.resolutions if old(r) != new(r)]

@@ -9,6 +9,10 @@ docs/brdf_gan.md) is "easily told apart".
     python -m fitme_cli.reflectance.gan.blind make models/ DATA_DIR -o out/blind --rounds 2
     (look at out/blind/round*.png only, write {"G": ["0-3", "0-5", ...]} to guesses.json)
     python -m fitme_cli.reflectance.gan.blind score out/blind guesses.json
+
+For a judge who has not seen G before (a fresh person, or a helper agent), ``--reference 16`` adds
+``reference_0.png`` / ``_1.png``: 16 triplets of the data, none of them in the rounds, so that the judge knows
+what the data looks like; and ``--key PATH`` writes the key outside the folder the judge is given.
 """
 
 from __future__ import annotations
@@ -50,10 +54,14 @@ def _triplets(imgs: GanImages, G: Generator) -> np.ndarray:
     return (x.permute(0, 2, 3, 1).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2, seed: int | None = None) -> list[Path]:
-    """Write ``roundR_a.png`` / ``roundR_b.png`` (8 numbered triplets each) and ``key.json`` into ``out_dir``.
-    ``data``: (N, 7, R, R) network space, N >= 8 (``data.load_dataset``); G samples at psi 1 with random
-    noise, as the card does. ``seed`` None draws one from the OS, so the judge cannot know the order."""
+def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2, seed: int | None = None,
+                reference: int = 0, key_path: Path | None = None) -> list[Path]:
+    """Write ``roundR_a.png`` / ``roundR_b.png`` (8 numbered triplets each) into ``out_dir`` and the key to
+    ``key_path`` (default ``out_dir / "key.json"``). ``data``: (N, 7, R, R) network space, N >= 8 + ``reference``
+    (``data.load_dataset``); G samples at psi 1 with random noise, as the card does. ``seed`` None draws one from
+    the OS, so the judge cannot know the order. ``reference`` > 0 also writes ``reference_0.png``, ``_1.png``, ...
+    (8 unnumbered rows each): that many data triplets that no round shows. Returns the rounds' paths, then the
+    reference sheets'."""
     import cv2
 
     from ...io.atomic import atomic_write_bytes, atomic_write_image
@@ -61,16 +69,22 @@ def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2
     r = G.settings.resolution
     if rounds < 1:
         raise ValueError(f"expected rounds >= 1, got {rounds}")
-    if data.ndim != 4 or data.shape[1:] != (7, r, r) or len(data) < _PER_SIDE:
-        raise ValueError(f"expected data of shape (N >= {_PER_SIDE}, 7, {r}, {r}), got {tuple(data.shape)}")
+    if reference < 0:
+        raise ValueError(f"expected reference >= 0, got {reference}")
+    if data.ndim != 4 or data.shape[1:] != (7, r, r) or len(data) < _PER_SIDE + reference:
+        raise ValueError(f"expected data of shape (N >= {_PER_SIDE + reference}, 7, {r}, {r}), got {tuple(data.shape)}")
     rng = np.random.default_rng(secrets.randbits(32) if seed is None else seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    pool = np.arange(len(data))
+    if reference:  # drawn first, and kept out of the rounds
+        pool = rng.permutation(len(data))
+        shown, pool = pool[:reference], pool[reference:]
     key, paths = {}, []
     for rd in range(rounds):
         with torch.no_grad():
             fake = _triplets(G(sample_z(_PER_SIDE, G.settings.z_dim, int(rng.integers(1 << 30))), noise_mode="random"), G)
-        real = _triplets(GanImages.split(data[rng.choice(len(data), _PER_SIDE, replace=False)].float()), G)
+        real = _triplets(GanImages.split(data[rng.choice(pool, _PER_SIDE, replace=False)].float()), G)
         items = [("G", f) for f in fake] + [("data", d) for d in real]
         order = rng.permutation(len(items))
         for half in range(2):
@@ -85,7 +99,12 @@ def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2
             path = out_dir / f"round{rd}_{'ab'[half]}.png"
             atomic_write_image(path, np.concatenate(rows, 0))
             paths.append(path)
-    atomic_write_bytes(out_dir / "key.json", json.dumps(key, indent=0).encode())
+    for start in range(0, reference, _PER_SIDE):
+        part = _triplets(GanImages.split(data[shown[start : start + _PER_SIDE]].float()), G)
+        path = out_dir / f"reference_{start // _PER_SIDE}.png"
+        atomic_write_image(path, np.concatenate([np.pad(t, ((2, 2), (0, 0), (0, 0)), constant_values=255) for t in part], 0))
+        paths.append(path)
+    atomic_write_bytes(Path(key_path) if key_path is not None else out_dir / "key.json", json.dumps(key, indent=0).encode())
     return paths
 
 
@@ -113,8 +132,11 @@ def main(argv: list[str] | None = None) -> int:
     mk.add_argument("data_dir", type=Path)
     mk.add_argument("-o", "--out", type=Path, required=True)
     mk.add_argument("--rounds", type=int, default=2)
+    mk.add_argument("--reference", type=int, default=0, help="also write this many data triplets no round shows, for a "
+                    "judge who has not seen the data (reference_*.png; 16 is two sheets)")
+    mk.add_argument("--key", type=Path, help="write the key here instead of OUT/key.json (out of the judge's sight)")
     sc = sub.add_parser("score", help="score a judge's guesses against the key")
-    sc.add_argument("out", type=Path)
+    sc.add_argument("out", type=Path, help="the rounds' folder (its key.json) or the key file itself")
     sc.add_argument("guesses", type=Path, help='JSON {"G": ["0-3", ...]}: the triplets judged generated')
     sc.add_argument("--card", type=Path, help="also record the score as the model card's person_test (brdf_gan.json)")
     sc.add_argument("--note", default="", help="recorded with it: who judged, what gave G away")
@@ -129,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             G = load_checkpoint(args.generator).G_ema if args.generator.is_file() else load_generator(args.generator)
             data = load_dataset(args.data_dir, G.settings, progress=False)
-            paths = make_rounds(G, data, args.out, args.rounds)
+            paths = make_rounds(G, data, args.out, args.rounds, reference=args.reference, key_path=args.key)
         except (FitmeError, OSError, ValueError) as e:
             print(f"blind make: {e}", file=sys.stderr)
             return 2
@@ -137,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
             print(p)
         return 0
     try:
-        key = json.loads((args.out / "key.json").read_text())
+        key = json.loads((args.out if args.out.is_file() else args.out / "key.json").read_text())
         guesses = json.loads(args.guesses.read_text())
         if not isinstance(guesses, dict) or not isinstance(guesses.get("G"), list):
             raise ValueError(f'expected {args.guesses} to hold {{"G": ["0-3", ...]}}, got {str(guesses)[:80]}')

@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import re
 import shutil
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
@@ -56,6 +57,9 @@ class TrainSettings:
     # the old ones' size (``to_image``: 0.012 against 0.30): a random walk, the new channels nearly silent. At 5 they
     # grew as fast as a random walk at that rate would (0.062 -> 0.183 of the old ones' in 9.5 kimg, docs/brdf_gan.md)
     g_top_lr_mul: float = 1.0
+    # the lowest resolution of G's blocks trained at ``g_top_lr_mul`` (0: the output resolution's only), so that the
+    # channels ``GanSettings.g_channel_base`` adds to the middle layers can catch up as the 256² ones did
+    g_top_lr_from: int = 0
     beta2: float = 0.99  # Adam betas are (0, beta2), as StyleGAN2
     r1_gamma: float = 3.0  # StyleGAN2-ADA's heuristic 0.0002 * R^2 / batch: 3.3 at 256^2, batch 4
     r1_interval: int = 16  # lazy regularisation
@@ -278,6 +282,8 @@ class TrainSettings:
             raise ValueError(f"learning rates must be > 0, got g_lr={self.g_lr}, d_lr={self.d_lr}")
         if not (self.g_top_lr_mul > 0 and math.isfinite(self.g_top_lr_mul)):
             raise ValueError(f"g_top_lr_mul must be finite and > 0, got {self.g_top_lr_mul}")
+        if self.g_top_lr_from and (self.g_top_lr_from < 4 or self.g_top_lr_from & (self.g_top_lr_from - 1)):
+            raise ValueError(f"g_top_lr_from must be 0 or a power of two >= 4, got {self.g_top_lr_from}")
         if self.ema_kimg is not None and self.ema_kimg <= 0:
             raise ValueError(f"ema_kimg must be > 0 or None (batch * 10 / 32), got {self.ema_kimg}")
         if not 0 < self.ada_target < 1:
@@ -520,22 +526,27 @@ def focus_texels(resolution: int) -> torch.Tensor:
 
 
 def _g_param_groups(G: Generator, train: TrainSettings) -> list[dict]:
-    """G's parameters as Adam groups: the contiguous runs of ``G.parameters()``, each flagged ``top`` when its
-    layers are at the output resolution (trained at ``g_lr * g_top_lr_mul``). Runs keep the parameter order
-    that checkpoints index Adam's state by, and the groups do not depend on the multiplier, so a resume may
-    change it (``set_learning_rates``)."""
-    tag = f".b{G.settings.resolution}."
+    """G's parameters as Adam groups: the contiguous runs of ``G.parameters()`` by the resolution ``res`` of their
+    block (0 outside the synthesis blocks), each trained at ``_g_lr``. Runs keep the parameter order that
+    checkpoints index Adam's state by, and the groups do not depend on the settings, so a resume may change the
+    multiplier and where it starts (``set_learning_rates``)."""
     groups: list[dict] = []
     for name, p in G.named_parameters():
-        top = tag in name
-        if not groups or groups[-1]["top"] != top:
-            groups.append({"params": [], "top": top, "lr": _g_lr(train, top)})
+        m = _BLOCK_RES.search(name)
+        res = int(m.group(1)) if m else 0
+        if not groups or groups[-1]["res"] != res:
+            groups.append({"params": [], "res": res, "lr": _g_lr(train, res, G.settings.resolution)})
         groups[-1]["params"].append(p)
     return groups
 
 
-def _g_lr(train: TrainSettings, top: bool) -> float:
-    """G's learning rate for an Adam group of ``_g_param_groups``."""
+_BLOCK_RES = re.compile(r"\.b(\d+)\.")  # a synthesis block's parameters: "synthesis.trunk.b128.conv0.weight"
+
+
+def _g_lr(train: TrainSettings, res: int, resolution: int) -> float:
+    """G's learning rate for a block at ``res`` (0: outside the blocks) of a G at ``resolution``: ``g_lr`` times
+    ``g_top_lr_mul`` from ``g_top_lr_from`` (0: ``resolution``) up."""
+    top = res > 0 and res >= (train.g_top_lr_from or resolution)
     return train.g_lr * (train.g_top_lr_mul if top else 1.0)
 
 
@@ -548,7 +559,7 @@ def set_learning_rates(state: TrainState) -> None:
     """Point both optimisers at ``state.train``'s learning rates (after a resume changed them); Adam's
     moment estimates are kept."""
     for group in state.opt_G.param_groups:
-        group["lr"] = _g_lr(state.train, group["top"])
+        group["lr"] = _g_lr(state.train, group["res"], state.gan.resolution)
     for opt in (state.opt_D, state.opt_D_patch):
         for group in [] if opt is None else opt.param_groups:
             group["lr"] = state.train.d_lr * _lazy_r1_factor(state.train)

@@ -65,7 +65,7 @@ def widen_state(state, gan: GanSettings):
     Counters, ADA and train settings carry over; both Adam states start fresh (their shapes changed)."""
     from .train import new_state
 
-    grows = {"channel_base", "channel_max", "g_channel_min", "d_joint_branch"}
+    grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch"}
     fixed = {f.name for f in dataclasses.fields(GanSettings)} - grows
     changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
     if changed:
