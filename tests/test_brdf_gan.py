@@ -1110,13 +1110,31 @@ def test_region_moments_matches_reference_known_values_gradients_and_bad_input()
         region_moments(x, torch.full((r, r), 255, dtype=torch.uint8))
 
 
+def _check_tone_halved_term(fn, name, x, regions):
+    """What a measure split by the batch's tone halves (``fn(x, regions, levels)``) shares: float64 gradients, the
+    refusals of an odd batch and of maps without a skin or forehead region, and a data target over whole batches."""
+    from fitme_cli.reflectance.gan.train import _data_target
+
+    x64 = x[:2].double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: fn(t, regions, 1), (x64,))
+    with pytest.raises(ValueError, match=f"{fn.__name__} needs an even batch to halve, got 3"):
+        fn(x[:3], regions, 2)
+    no_face = torch.where(regions == 2, torch.tensor(5, dtype=torch.uint8), regions)
+    with pytest.raises(ValueError, match=fr"{fn.__name__} needs a skin \(1\) or forehead \(2\) region"):
+        fn(x, no_face, 2)
+    data = _tiny_data(n=15)  # 3 whole batches of 4: the 15th sample left out
+    f = lambda y, r: fn(y, r, 2)  # noqa: E731
+    expected = torch.stack([f(data[i:i + 4].float(), regions).mean(0) for i in (0, 4, 8)]).mean(0)
+    torch.testing.assert_close(_data_target(name, f, data, regions, 4), expected)
+
+
 def test_tone_bands_split_the_band_rms_by_the_batchs_tone_halves():
     """Each sample's band RMS of the log albedo lands in the darker or the lighter half's entries by its skin tone's
     rank in the batch, times 2: the batch mean is each half's mean; a tone's scale does not change it. The ranking carries no gradient; odd batches and regions without
     skin or forehead are refused; the data target is taken over whole batches of the training size."""
     from fitme_cli.reflectance.gan.metrics import region_band_energy
     from fitme_cli.reflectance.gan.networks import decode_albedo
-    from fitme_cli.reflectance.gan.train import _albedo_tone_bands, _data_target
+    from fitme_cli.reflectance.gan.train import _albedo_tone_bands
 
     regions = _two_regions()  # forehead (2) and neck (7)
     g = torch.Generator().manual_seed(0)
@@ -1138,17 +1156,7 @@ def test_tone_bands_split_the_band_rms_by_the_batchs_tone_halves():
     brighter = encode_maps(ReflectanceMaps(albedo * torch.tensor([1.3, 1, 1, 1]).view(4, 1, 1, 1), torch.full((4, 1, 16, 16), 0.1),
                                            torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(4, 3, 16, 16)), TINY).cat()
     torch.testing.assert_close(_albedo_tone_bands(brighter, regions, 2), out.detach(), rtol=1e-4, atol=1e-5)
-    x64 = x.detach()[:2].double().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda t: _albedo_tone_bands(t, regions, 1), (x64,))
-    with pytest.raises(ValueError, match="needs an even batch to halve, got 3"):
-        _albedo_tone_bands(x[:3], regions, 2)
-    no_face = torch.where(regions == 2, torch.tensor(5, dtype=torch.uint8), regions)
-    with pytest.raises(ValueError, match=r"needs a skin \(1\) or forehead \(2\) region"):
-        _albedo_tone_bands(x, no_face, 2)
-    data = _tiny_data(n=15)  # 3 whole batches of 4: the 15th sample left out
-    f = lambda y, r: _albedo_tone_bands(y, r, 2)  # noqa: E731
-    expected = torch.stack([f(data[i:i + 4].float(), regions).mean(0) for i in (0, 4, 8)]).mean(0)
-    torch.testing.assert_close(_data_target("tone_band", f, data, regions, 4), expected)
+    _check_tone_halved_term(_albedo_tone_bands, "tone_band", x.detach(), regions)
 
 
 @pytest.mark.parametrize("name", ["tone_band", "chroma_band"])
@@ -1199,7 +1207,7 @@ def test_chroma_bands_see_blotches_of_colour_not_of_brightness():
     regions without skin or forehead are refused; float64 gradcheck; the data target is over whole batches."""
     from fitme_cli.reflectance.gan.metrics import log_chroma, region_band_energy
     from fitme_cli.reflectance.gan.networks import decode_albedo
-    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands, _albedo_tone_bands, _data_target
+    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands, _albedo_tone_bands
 
     regions = _two_regions()
     g = torch.Generator().manual_seed(0)
@@ -1221,17 +1229,7 @@ def test_chroma_bands_see_blotches_of_colour_not_of_brightness():
     torch.testing.assert_close(base[[1, 3], :m], 2 * bands[[1, 3]])  # samples 1 and 3 the darker half
     torch.testing.assert_close(base[[0, 2], m:], 2 * bands[[0, 2]])
     assert (base[[1, 3], m:] == 0).all() and (base[[0, 2], :m] == 0).all()
-    x64 = x[:2].double().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda t: _albedo_chroma_bands(t, regions, 1), (x64,))
-    with pytest.raises(ValueError, match="_albedo_chroma_bands needs an even batch to halve, got 3"):
-        _albedo_chroma_bands(x[:3], regions, 2)
-    no_face = torch.where(regions == 2, torch.tensor(5, dtype=torch.uint8), regions)
-    with pytest.raises(ValueError, match=r"_albedo_chroma_bands needs a skin \(1\) or forehead \(2\) region"):
-        _albedo_chroma_bands(x, no_face, 2)
-    data = _tiny_data(n=15)
-    f = lambda y, r: _albedo_chroma_bands(y, r, 2)  # noqa: E731
-    expected = torch.stack([f(data[i:i + 4].float(), regions).mean(0) for i in (0, 4, 8)]).mean(0)
-    torch.testing.assert_close(_data_target("chroma_band", f, data, regions, 4), expected)
+    _check_tone_halved_term(_albedo_chroma_bands, "chroma_band", x, regions)
 
 
 def test_colour_weight_moves_the_fakes_region_colour(tmp_path):
