@@ -1433,6 +1433,50 @@ def test_compile_synthesis_matches_eager_values_and_gradients_and_keeps_the_stat
     assert torch.equal(state.G.synthesis.mean_image, ref.synthesis.mean_image)
 
 
+def test_bf16_autocast_tracks_float32_keeps_float32_weights_and_the_map_layers_exact():
+    settings = {"batch": 8, "kimg": 1, "g_lr": 0.005, "d_lr": 0.005, "r1_interval": 1}  # R1 on every step
+    states = {}
+    for bf16 in (False, True):
+        torch.manual_seed(0)
+        states[bf16] = new_state(TINY, TrainSettings(bf16=bf16, **settings))
+    before = torch.cat([p.detach().flatten().clone() for p in states[False].G.parameters()])
+    data = _tiny_data()
+    losses = {}
+    for bf16, state in states.items():
+        torch.manual_seed(1)
+        losses[bf16] = train_step(state, data[:8])
+    for k in ("loss_g", "loss_d", "loss_r1", "real_logit"):
+        assert losses[True][k] == pytest.approx(losses[False][k], rel=0.03, abs=0.01), k  # logits ~0.05 at init
+    assert all(p.dtype == torch.float32 for s in states.values() for p in [*s.G.parameters(), *s.D.parameters()])
+    moved = {bf16: torch.cat([p.detach().flatten() for p in s.G.parameters()]) - before for bf16, s in states.items()}
+    assert F.cosine_similarity(moved[True], moved[False], dim=0) > 0.9  # Adam's first step is ~lr * sign(grad)
+    assert not torch.equal(moved[True], moved[False])  # the step did run in bfloat16
+    # the layers that write and read the maps stay float32 under autocast: equal to their float32 selves
+    G, D = states[True].G, states[True].D
+    x, w = torch.randn(2, TINY.g_channels(16), 16, 16), torch.randn(2, TINY.w_dim)
+    layer, dbranch = G.synthesis.branches["albedo"]["b16"].to_image, D.albedo_branch
+    read: list[torch.Tensor] = []
+    dbranch.from_image.register_forward_hook(lambda module, args, out: read.append(out))
+    img = torch.randn(2, 4, 16, 16)
+    with torch.no_grad():
+        plain = layer(x, w), dbranch(img)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            cast = layer(x, w), dbranch(img)
+            maps = G.synthesis(G.ws(torch.randn(4, TINY.z_dim)), noise_mode="const").cat()
+        assert torch.equal(plain[0], cast[0]) and torch.equal(read[0], read[1]) and read[1].dtype == torch.float32
+        assert not torch.equal(plain[1], cast[1])  # the branch's blocks after it run in bfloat16
+        assert maps.dtype == torch.float32
+    # the rest of the synthesis does run in bfloat16: close to float32, not equal
+    torch.manual_seed(2)
+    ws = G.ws(torch.randn(4, TINY.z_dim))
+    with torch.no_grad():
+        ref = G.synthesis(ws, noise_mode="const").cat()
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            got = G.synthesis(ws, noise_mode="const").cat()
+    err = float((got - ref).square().mean().sqrt() / (ref - ref.mean((0, 2, 3), keepdim=True)).square().mean().sqrt())
+    assert 0 < err < 0.05, err
+
+
 def test_checkpoint_round_trip_is_exact_and_resumes_identically(tmp_path):
     data = _tiny_data()
     state = new_state(TINY, TrainSettings(batch=4, kimg=1, ada=True))
@@ -2369,6 +2413,20 @@ def test_train_compile_without_a_compiler_is_a_clean_usage_error(dataset_dir, tm
     assert not (tmp_path / "run").exists()  # refused before anything is written
 
 
+def test_train_bf16_on_a_cpu_without_bfloat16_warns_and_trains(dataset_dir, tmp_path, monkeypatch):
+    from fitme_cli.cli import main
+    from fitme_cli.reflectance.gan import train as gan_train
+
+    args = ["train", str(dataset_dir), "-o", str(tmp_path / "run"), "--resolution", "16", "--branch-resolution", "8",
+            "--channel-base", "64", "--channel-max", "16", "--batch", "4", "--kimg", "0.004", "--threads", "1", "--bf16"]
+    for supported in (True, False):
+        monkeypatch.setattr(gan_train, "can_bf16", lambda: supported)
+        r = CliRunner().invoke(main, [*args[:3], str(tmp_path / f"run{supported}"), *args[4:]])
+        assert r.exit_code == 0, r.output
+        assert ("no bfloat16 instructions" in r.output) is not supported
+        assert load_checkpoint(tmp_path / f"run{supported}" / "checkpoint.safetensors").train.bf16 is True
+
+
 def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path):
     from fitme_cli.cli import main
 
@@ -2388,13 +2446,14 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
                                   "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
-                                  "--threads", "1"])
+                                  "--bf16", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
     assert "a fresh local D on 8x8 crops" in r.output and "local D 0." in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     assert state.train.hairline_region is True and state.train.side_regions is True and state.train.relief_weight == 2.0
     assert state.train.eye_region is True and state.train.brow_edge_region is True and state.train.colour_weight == 0.5
+    assert state.train.bf16 is True and all(p.dtype == torch.float32 for p in state.G.parameters())
     # the EMA half-life, the learning rates and the moment term may change on resume, and the optimiser uses
     # the new rate
     assert state.nimg == 16 and state.train.ema_kimg == 0.5 and state.train.batch == 4

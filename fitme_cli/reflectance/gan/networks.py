@@ -28,6 +28,12 @@ from .ops import bias_lrelu, conv_down2x, downsample2x, modulated_conv2d, upsamp
 __all__ = ["MODALITIES", "GanSettings", "GanImages", "ReflectanceMaps", "MappingNetwork", "SynthesisNetwork",
            "Generator", "Discriminator", "PatchDiscriminator", "encode_maps", "decode_maps", "decode_albedo"]
 
+
+def _full_precision(x: torch.Tensor) -> torch.autocast:
+    """A context that turns autocast off on ``x``'s device: the layers that write or read the maps stay float32."""
+    return torch.autocast(x.device.type, enabled=False)
+
+
 MODALITIES = (("albedo", 3), ("specular", 1), ("normals", 3))  # name, channels; in this order in the 7-ch image
 N_CHANNELS = sum(c for _, c in MODALITIES)
 
@@ -233,7 +239,10 @@ class _ToImage(nn.Module):
         self.gain, self.clamp = 1 / math.sqrt(c_in), clamp
 
     def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        y = modulated_conv2d(x, self.weight, self.affine(w) * self.gain, demodulate=False)
+        # in float32 under autocast (TrainSettings.bf16): the 256^2 to_image draws nearly the whole map, and its
+        # bfloat16 rounding (~0.4 % of the value) was 5 % of the albedo's finest band, white noise where the tells are
+        with _full_precision(x):
+            y = modulated_conv2d(x.float(), self.weight, self.affine(w.float()) * self.gain, demodulate=False)
         y = y + self.bias.view(1, -1, 1, 1)
         return y.clamp(-self.clamp, self.clamp) if self.clamp else y
 
@@ -420,7 +429,8 @@ class _DBranch(nn.Module):
                                     for r in reversed(s.resolutions) if r > 4)
 
     def forward(self, x):
-        x = self.from_image(x)
+        with _full_precision(x):  # D reads the maps' finest grain unrounded (see _ToImage)
+            x = self.from_image(x.float())
         for b in self.blocks:
             x = b(x)
         return x
@@ -500,7 +510,8 @@ class PatchDiscriminator(nn.Module):
     def forward(self, crops: torch.Tensor) -> torch.Tensor:
         if crops.ndim != 4 or crops.shape[1:] != (N_CHANNELS, self.size, self.size):
             raise ValueError(f"expected crops of shape (B, {N_CHANNELS}, {self.size}, {self.size}), got {tuple(crops.shape)}")
-        x = self.from_image(crops)
+        with _full_precision(crops):
+            x = self.from_image(crops.float())
         for b in self.blocks:
             x = b(x)
         x = self.conv(_minibatch_std(x, self.mbstd_group))
