@@ -2417,11 +2417,11 @@ def test_train_bf16_on_a_cpu_without_bfloat16_warns_and_trains(dataset_dir, tmp_
     from fitme_cli.cli import main
     from fitme_cli.reflectance.gan import train as gan_train
 
-    args = ["train", str(dataset_dir), "-o", str(tmp_path / "run"), "--resolution", "16", "--branch-resolution", "8",
-            "--channel-base", "64", "--channel-max", "16", "--batch", "4", "--kimg", "0.004", "--threads", "1", "--bf16"]
     for supported in (True, False):
         monkeypatch.setattr(gan_train, "can_bf16", lambda: supported)
-        r = CliRunner().invoke(main, [*args[:3], str(tmp_path / f"run{supported}"), *args[4:]])
+        r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / f"run{supported}"), "--resolution",
+                                      "16", "--branch-resolution", "8", "--channel-base", "64", "--channel-max", "16",
+                                      "--batch", "4", "--kimg", "0.004", "--threads", "1", "--bf16"])
         assert r.exit_code == 0, r.output
         assert ("no bfloat16 instructions" in r.output) is not supported
         assert load_checkpoint(tmp_path / f"run{supported}" / "checkpoint.safetensors").train.bf16 is True
