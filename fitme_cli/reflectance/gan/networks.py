@@ -176,6 +176,18 @@ class _Conv(nn.Module):
         return x * gain
 
 
+class _FromImage(_Conv):
+    """A discriminator's 1x1 conv that reads the maps: float32 under autocast, so that D sees the maps' finest grain
+    unrounded (see ``_ToImage``)."""
+
+    def __init__(self, c_in: int, c_out: int, clamp: float | None):
+        super().__init__(c_in, c_out, 1, clamp=clamp)
+
+    def forward(self, x: torch.Tensor, gain: float = 1.0) -> torch.Tensor:
+        with _full_precision(x):
+            return super().forward(x.float(), gain)
+
+
 # --- generator ---------------------------------------------------------------------------------------
 
 
@@ -424,13 +436,12 @@ class _DBlock(nn.Module):
 class _DBranch(nn.Module):
     def __init__(self, c_img: int, s: GanSettings):
         super().__init__()
-        self.from_image = _Conv(c_img, s.channels(s.resolution), 1, clamp=s.conv_clamp)
+        self.from_image = _FromImage(c_img, s.channels(s.resolution), s.conv_clamp)
         self.blocks = nn.ModuleList(_DBlock(s.channels(r), s.channels(r // 2), s.conv_clamp)
                                     for r in reversed(s.resolutions) if r > 4)
 
     def forward(self, x):
-        with _full_precision(x):  # D reads the maps' finest grain unrounded (see _ToImage)
-            x = self.from_image(x.float())
+        x = self.from_image(x)
         for b in self.blocks:
             x = b(x)
         return x
@@ -500,7 +511,7 @@ class PatchDiscriminator(nn.Module):
         def c(r: int) -> int:
             return min(channels * size // r, channel_max)
 
-        self.from_image = _Conv(N_CHANNELS, c(size), 1, clamp=clamp)
+        self.from_image = _FromImage(N_CHANNELS, c(size), clamp)
         self.blocks = nn.ModuleList(_DBlock(c(r), c(r // 2), clamp) for r in sizes[:-1])
         c4 = c(4)
         self.conv = _Conv(c4 + 1, c4, 3, clamp=clamp)
@@ -510,8 +521,7 @@ class PatchDiscriminator(nn.Module):
     def forward(self, crops: torch.Tensor) -> torch.Tensor:
         if crops.ndim != 4 or crops.shape[1:] != (N_CHANNELS, self.size, self.size):
             raise ValueError(f"expected crops of shape (B, {N_CHANNELS}, {self.size}, {self.size}), got {tuple(crops.shape)}")
-        with _full_precision(crops):
-            x = self.from_image(crops.float())
+        x = self.from_image(crops)
         for b in self.blocks:
             x = b(x)
         x = self.conv(_minibatch_std(x, self.mbstd_group))
