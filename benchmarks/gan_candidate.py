@@ -6,7 +6,7 @@ A better card alone is not enough: the 107 kimg state (2026-11-25) had a Fréche
 against the shipped 92 kimg model's 0.063 and fitted the sample photos worse (docs/brdf_gan.md).
 
     python -m fitme_cli.reflectance.gan.report RUN_DIR DATA_DIR -o CAND_DIR --truncation-psi 0.5
-    python benchmarks/gan_candidate.py CAND_DIR [--presets fast,default] [--threads 2] [--members 3]
+    python benchmarks/gan_candidate.py CAND_DIR [--presets fast,default] [--threads 2] [--members 3] [--data-subjects 4]
 
 Each model runs in its own process; on 2 cores the whole comparison takes ~50 s at the fast preset
 and ~4 min with the default preset added (fits of 6 s and 35 s), times ``--members``.
@@ -14,6 +14,12 @@ and ~4 min with the default preset added (fits of 6 s and 35 s), times ``--membe
 One fit per photo is chaotic: the three-photo mean at the default preset moved by up to 0.07 between 1
 and 2 threads (2026-11-25). ``--members M`` fits each photo M times (member 0 and M - 1 starts nudged by
 1e-5, as the regression run's) and reports each photo's median.
+
+Likeness to a photo also rewards light baked into the albedo, which a relightable avatar must not have, and no
+sample photo has a true albedo. ``--data-subjects N`` adds N held-out data subjects (``fitme bench --reflectance
+data``: procedural maps no generator trained on, one frontal view, photo-like): each model fits the same ones, and
+the table gives the median albedo Delta E against the truth (before and after a per-channel gain: the light's
+scale), the landmark error and FaceNet, over subjects x members.
 """
 
 from __future__ import annotations
@@ -85,24 +91,45 @@ def preset_rows(preset: str, result: dict, members: int) -> dict[str, str]:
     return rows
 
 
-def _worker(presets: list[str], threads: int, members: int) -> None:
+def subject_rows(preset: str, fits: list[dict[str, float]]) -> dict[str, str]:
+    """Table rows of one model's fits of the held-out data subjects at one preset: medians over subjects x members."""
+    import numpy as np
+
+    med = {k: float(np.median([f[k] for f in fits])) for k in ("delta_e", "delta_e_gain", "landmark_px", "sim")}
+    return {f"{preset} preset, {len(fits)} fits of held-out data subjects: albedo ΔE (after gain), median":
+            f"**{med['delta_e']:.2f}** ({med['delta_e_gain']:.2f})",
+            f"{preset} preset, held-out data subjects: landmark px / FaceNet, median":
+            f"{med['landmark_px']:.2f} / {med['sim']:.3f}"}
+
+
+def _worker(presets: list[str], threads: int, members: int, subjects: Path | None) -> None:
     """In a process whose FITME_MODELS_DIR is the model under test: one JSON line per preset."""
     import torch
 
     torch.set_num_threads(threads)
+    from fitme_cli.bench.dataset import list_subjects, load_subject
     from fitme_cli.bench.realphotos import collect_photos, run_real_photos
-    from fitme_cli.bench.run import FitSettings, load_models
+    from fitme_cli.bench.run import FitSettings, fit_photos, load_models
 
     models, photos = load_models(), collect_photos(None)
     for preset in presets:
-        runs, landmarks, secs = [], [], []
+        runs, landmarks, secs, fits = [], [], [], []
         for m in range(members):
-            res = run_real_photos(models, photos, FitSettings.from_preset(preset).member(m, 1e-5))
+            settings = FitSettings.from_preset(preset).member(m, 1e-5)
+            res = run_real_photos(models, photos, settings)
             runs.append({r.photo: r.render_sim for r in res})
             landmarks.append({r.photo: r.landmark_px for r in res})
             secs += [r.fit_s for r in res]
+            for d in list_subjects(subjects) if subjects else []:
+                truth = load_subject(d).views([0])
+                try:
+                    x = fit_photos([truth.photos[0]], models, settings, truth.focal_35mm, truth).metrics
+                finally:
+                    models.restore_generator()
+                fits.append({"subject": d.name, "member": m, "delta_e": x.albedo_delta_e,
+                             "delta_e_gain": x.albedo_delta_e_gain, "landmark_px": x.landmark_px, "sim": x.identity_sim})
         print(json.dumps({"preset": preset, "sims": median_sims(runs), "members": runs,
-                          "landmark_px": median_sims(landmarks), "fit_s": secs}), flush=True)
+                          "landmark_px": median_sims(landmarks), "fit_s": secs, "subjects": fits}), flush=True)
 
 
 def _models_with(candidate: Path, shipped: Path, out: Path) -> Path:
@@ -116,10 +143,11 @@ def _models_with(candidate: Path, shipped: Path, out: Path) -> Path:
     return out
 
 
-def _fit_photos(models_dir: Path, presets: list[str], threads: int, members: int) -> dict[str, dict]:
+def _fit_photos(models_dir: Path, presets: list[str], threads: int, members: int,
+                subjects: Path | None) -> dict[str, dict]:
     env = dict(os.environ, FITME_MODELS_DIR=str(models_dir))
     proc = subprocess.run([sys.executable, __file__, "--worker", ",".join(presets), "--threads", str(threads),
-                           "--members", str(members)],
+                           "--members", str(members)] + (["--subjects-dir", str(subjects)] if subjects else []),
                           env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"fits with {models_dir} failed:\n{proc.stderr[-2000:]}")
@@ -133,11 +161,13 @@ def main() -> None:
     ap.add_argument("--presets", default="fast,default")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--members", type=int, default=1, help="fits per photo; each photo's median is reported")
+    ap.add_argument("--data-subjects", type=int, default=0, help="held-out data subjects each model also fits")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--subjects-dir", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
     presets = [p for p in (args.worker or args.presets).split(",") if p]
     if args.worker:
-        _worker(presets, args.threads, args.members)
+        _worker(presets, args.threads, args.members, args.subjects_dir)
         return
     from fitme_cli.perception.store import models_dir
 
@@ -149,15 +179,25 @@ def main() -> None:
         ap.error(f"expected a folder with brdf_gan.safetensors and brdf_gan.json, got {cand}")
     cards = {"shipped": json.loads((shipped / "brdf_gan.json").read_text()),
              "candidate": json.loads((cand / "brdf_gan.json").read_text())}
+    if args.data_subjects < 0:
+        ap.error(f"--data-subjects must be >= 0, got {args.data_subjects}")
     with tempfile.TemporaryDirectory() as tmp:
-        fits = {"shipped": _fit_photos(shipped, presets, args.threads, args.members),
+        subjects = None
+        if args.data_subjects:  # the same subjects for both models: their maps do not come from either
+            from fitme_cli.bench.dataset import BenchSetSettings, make_bench_set
+
+            subjects = Path(tmp) / "subjects"
+            make_bench_set(subjects, BenchSetSettings(n_subjects=args.data_subjects, n_views=1, reflectance="data"))
+        fits = {"shipped": _fit_photos(shipped, presets, args.threads, args.members, subjects),
                 "candidate": _fit_photos(_models_with(cand, shipped, Path(tmp) / "models"), presets, args.threads,
-                                         args.members)}
+                                         args.members, subjects)}
     print(json.dumps(fits), file=sys.stderr)  # minutes of fits: keep them even if the table fails
     rows = {k: card_rows(c) for k, c in cards.items()}
     for p in presets:
         for k in fits:
             rows[k].update(preset_rows(p, fits[k][p], args.members))
+            if fits[k][p]["subjects"]:
+                rows[k].update(subject_rows(p, fits[k][p]["subjects"]))
     print("| | shipped | candidate |\n|---|---|---|")
     for key in dict.fromkeys([*rows["shipped"], *rows["candidate"]]):
         print(f"| {key} | {rows['shipped'].get(key, '–')} | {rows['candidate'].get(key, '–')} |")

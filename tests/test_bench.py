@@ -242,3 +242,50 @@ def test_cli_rejects_update_baseline_without_regress(tmp_path):
 
     r = CliRunner().invoke(main, ["bench", "-o", str(tmp_path), "--update-baseline"])
     assert r.exit_code == 2 and "--update-baseline needs --regress" in r.output
+
+
+# --- held-out data subjects ----------------------------------------------------------------------------
+
+
+def test_data_subjects_take_held_out_maps_and_are_kept_on_a_rerun(tmp_path, one_thread):
+    import numpy as np
+    import torch
+
+    from fitme_cli.bench.dataset import BenchSetSettings, load_subject, make_bench_set
+    from fitme_cli.bench.run import load_models
+    from fitme_cli.reflectance.skin_data import SkinDataSettings, generate_sample, skin_layout
+
+    with pytest.raises(ValueError, match="reflectance must be 'gan' or 'data', got 'photo'"):
+        BenchSetSettings(reflectance="photo")
+    models = load_models()
+    s = BenchSetSettings(n_subjects=2, n_views=1, size=96, reflectance="data")
+    dirs = make_bench_set(tmp_path, s, models)
+    metas = [json.loads((d / "truth.json").read_text()) for d in dirs]
+    refl = [m["reflectance"] for m in metas]
+    assert [(r["source"], r["seed"]) for r in refl] == [("data", 1)] * 2 and refl[0]["index"] < refl[1]["index"]
+    assert all(m["off_tone"] <= 0.15 for m in metas)
+    layout = skin_layout(models.root, 256)
+    for d, r in zip(dirs, refl):
+        smp = generate_sample(layout, 1, r["index"], SkinDataSettings(size=256))
+        truth = load_subject(d)
+        assert truth.photos.shape == (1, 96, 96, 3)
+        assert torch.equal(truth.maps.albedo[0].permute(1, 2, 0), torch.from_numpy(smp.albedo))
+        assert torch.equal(truth.maps.specular[0, 0], torch.from_numpy(smp.specular))
+    stamps = [(d / "truth.safetensors").stat().st_mtime_ns for d in dirs]
+    make_bench_set(tmp_path, s, models)
+    assert [(d / "truth.safetensors").stat().st_mtime_ns for d in dirs] == stamps  # the same settings: kept
+    make_bench_set(tmp_path, dataclasses.replace(s, data_seed=2), models)
+    assert json.loads((dirs[0] / "truth.json").read_text())["reflectance"]["seed"] == 2
+    # G-drawn subjects of the same seeds: the same scene, other maps
+    gan = make_bench_set(tmp_path / "gan", dataclasses.replace(s, reflectance="gan"), models)
+    assert json.loads((gan[0] / "truth.json").read_text())["reflectance"] == {"source": "gan"}
+    assert np.array_equal(load_subject(gan[0]).ibug68, load_subject(dirs[0]).ibug68)
+
+
+def test_cli_rejects_an_unknown_reflectance_source(tmp_path):
+    from click.testing import CliRunner
+
+    from fitme_cli.cli import main
+
+    r = CliRunner().invoke(main, ["bench", "-o", str(tmp_path), "--reflectance", "photo"])
+    assert r.exit_code == 2 and "'photo' is not one of 'gan', 'data'" in r.output

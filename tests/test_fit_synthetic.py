@@ -265,6 +265,29 @@ def test_subject_redraws_only_an_off_tone_z(models):
     assert default.off_tone <= default.settings.max_off_tone or default.z_redraws == default.settings.max_redraws
 
 
+def test_subject_with_given_maps_keeps_them_and_the_seeds_scene(models):
+    from fitme_cli.reflectance.maps import ReflectanceMaps
+
+    G, sm, _, r, _ = models
+    s = SyntheticSettings(size=64, seed=0, max_off_tone=1.0)
+    drawn = make_subject(G, sm, r, s)
+    # a flat skin colour, a brighter specular and normals tilted toward +x: nothing G draws
+    albedo = torch.tensor([0.45, 0.3, 0.2]).view(1, 3, 1, 1).repeat(1, 1, 256, 256)
+    normals = torch.nn.functional.normalize(torch.tensor([0.2, 0.0, 1.0]), dim=0).view(1, 3, 1, 1).repeat(1, 1, 256, 256)
+    given = ReflectanceMaps(albedo, torch.full((1, 1, 256, 256), 0.3), normals)
+    sub = make_subject(G, sm, r, s, maps=given)
+    assert sub.z is None and sub.ws is None and sub.z_redraws == 0
+    for k in ("albedo", "specular", "normals"):
+        assert torch.equal(getattr(sub.maps, k), getattr(given, k))
+    assert sub.off_tone == pytest.approx(off_tone_fraction(albedo, sm.region_uv))
+    # the scene is the seed's: only the reflectance differs from the G-drawn subject
+    assert torch.equal(sub.p_s, drawn.p_s) and torch.equal(sub.p_e, drawn.p_e)
+    assert torch.equal(sub.cameras.rotation, drawn.cameras.rotation) and torch.equal(sub.lights.colour, drawn.lights.colour)
+    assert np.array_equal(sub.landmarks, drawn.landmarks) and not np.array_equal(sub.clean, drawn.clean)
+    with pytest.raises(ValueError, match=r"maps must be \(1, C, 256, 256\).*'albedo': \(1, 3, 128, 128\)"):
+        make_subject(G, sm, r, s, maps=ReflectanceMaps(albedo[..., :128, :128], given.specular, normals))
+
+
 # --- fit recovery ------------------------------------------------------------------------------------
 
 

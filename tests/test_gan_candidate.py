@@ -103,3 +103,18 @@ def test_preset_rows_show_likeness_landmarks_and_time(gc):
                     "default preset: landmark px, median per photo": "4.4 / 2.1",
                     "default preset: s per fit, median": "39.5"}
     assert list(gc.preset_rows("fast", result, 1))[0] == "fast preset: astronaut / camera, mean"  # one member: no median
+
+
+def test_subject_rows_take_medians_over_every_fit(gc):
+    fits = [{"subject": f"subject_0{i}", "member": 0, "delta_e": de, "delta_e_gain": 2.0 + i, "landmark_px": 2.5,
+             "sim": 0.8 + i / 100} for i, de in enumerate((10.0, 4.0, 5.0))]
+    rows = gc.subject_rows("default", fits)
+    assert rows == {"default preset, 3 fits of held-out data subjects: albedo ΔE (after gain), median": "**5.00** (3.00)",
+                    "default preset, held-out data subjects: landmark px / FaceNet, median": "2.50 / 0.810"}
+
+
+def test_a_negative_subject_count_is_refused(tmp_path):
+    for name in ("brdf_gan.safetensors", "brdf_gan.json"):
+        (tmp_path / name).write_text("{}")
+    r = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path), "--data-subjects", "-1"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--data-subjects must be >= 0, got -1" in r.stderr

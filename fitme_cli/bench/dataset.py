@@ -2,6 +2,11 @@
 expression and BRDF-GAN reflectance, random lights and cameras, every effect on, photo-like blur, noise
 and JPEG), each seen in three views (0, +30, -30 degrees); the one-view case is the first view.
 
+``BenchSetSettings.reflectance`` "data" takes each subject's maps from the procedural training data instead
+(``reflectance/skin_data.py`` at a seed no training set used), not from the shipped generator: subjects that
+stay the same when the generator changes, and that no generator can draw exactly, so two generators can be
+compared on them (docs/fitting.md "Held-out data subjects").
+
 Written to ``DIR/subject_NN/`` so a run is inspectable and a fit in another process can read it back:
 ``view_K.png`` (the degraded photos, lossless), ``truth.safetensors`` (p_s, p_e, ws, maps, meshes,
 landmarks, cameras, lights) and ``truth.json`` (the synthetic settings, yaws, what each tensor is)."""
@@ -27,8 +32,13 @@ class BenchSetSettings:
     noise_sigma: float = 2.0
     jpeg_quality: int = 85
     first_seed: int = 1  # seed 0's -30 degree view finds no face (docs/fitting_synthetic.md)
+    reflectance: str = "gan"  # "gan": maps drawn from the shipped BRDF-GAN; "data": held-out procedural maps
+    # the skin_data seed of "data" subjects: `fitme dataset` defaults to seed 0, which the shipped BRDF-GAN trained on
+    data_seed: int = 1
 
     def __post_init__(self) -> None:
+        if self.reflectance not in ("gan", "data"):
+            raise ValueError(f"BenchSetSettings.reflectance must be 'gan' or 'data', got {self.reflectance!r}")
         if self.n_subjects < 1:
             raise ValueError(f"BenchSetSettings.n_subjects must be >= 1, got {self.n_subjects}")
         if self.n_views < 1:
@@ -59,7 +69,7 @@ class GroundTruth:
                        yaws_deg=self.yaws_deg[idx])
 
 
-def _save_subject(d: Path, subject) -> None:
+def _save_subject(d: Path, subject, reflectance: dict) -> None:
     import cv2
     from safetensors.torch import save_file
 
@@ -78,7 +88,7 @@ def _save_subject(d: Path, subject) -> None:
     save_file({k: v.detach().float().contiguous() for k, v in t.items() if v is not None}, str(d / "truth.safetensors"))
     meta = {"synthetic_settings": asdict(subject.settings), "yaws_deg": subject.yaws_deg.tolist(),
             "effects": subject.effects.on(), "n_views": subject.n_views,
-            "z_redraws": subject.z_redraws, "off_tone": round(subject.off_tone, 4),
+            "z_redraws": subject.z_redraws, "off_tone": round(subject.off_tone, 4), "reflectance": reflectance,
             "tensors": {"p_s": "(1, K) identity, raw shape-model units", "p_e": "(V, E) expression per view",
                         "albedo/specular/normals": "(1, C, R, R) linear maps", "vertices": "(V, N, 3) posed mesh, world mm",
                         "neutral": "(N, 3) identity without expression", "landmarks": "(V, 468, 2) photo px",
@@ -95,19 +105,50 @@ def make_bench_set(out: Path, s: BenchSetSettings = BenchSetSettings(), models=N
     from .run import load_models
 
     out = Path(out)
-    dirs = []
+    dirs, held_out = [], None
     for k in range(s.n_subjects):
         seed = s.first_seed + k
         syn = SyntheticSettings(size=s.size, n_views=s.n_views, yaw_range_deg=s.yaw_range_deg, blur_sigma=s.blur_sigma,
                                 noise_sigma=s.noise_sigma, jpeg_quality=s.jpeg_quality, background="noise", seed=seed)
         d = out / f"subject_{seed:02d}"
         dirs.append(d)
-        if (d / "truth.json").exists() and json.loads((d / "truth.json").read_text())["synthetic_settings"] == json.loads(
-                json.dumps(asdict(syn))):
-            continue
+        source, maps = {"source": s.reflectance}, None
+        if s.reflectance == "data":  # drawn for every subject, so that a kept subject's index is not drawn again
+            models = models or load_models()
+            held_out = held_out or _held_out_maps(models, s.data_seed, syn.max_off_tone)
+            index, maps = next(held_out)
+            source |= {"seed": s.data_seed, "index": index}
+        if (d / "truth.json").exists():
+            meta = json.loads((d / "truth.json").read_text())
+            if meta["synthetic_settings"] == json.loads(json.dumps(asdict(syn))) and \
+                    meta.get("reflectance", {"source": "gan"}) == source:
+                continue
         models = models or load_models()
-        _save_subject(d, make_subject(models.G, models.shape_model, models.renderer, syn))
+        _save_subject(d, make_subject(models.G, models.shape_model, models.renderer, syn, maps), source)
     return dirs
+
+
+def _held_out_maps(models, seed: int, max_off_tone: float):
+    """Yield (index, ReflectanceMaps (1, ., R, R)) of the procedural data at ``seed`` at the generator's resolution,
+    in index order, skipping the samples whose face is more than ``max_off_tone`` off its tone (beards; as
+    ``make_subject`` redraws such a z)."""
+    import torch
+
+    from ..fitting.synthetic import off_tone_fraction
+    from ..reflectance.maps import ReflectanceMaps
+    from ..reflectance.skin_data import SkinDataSettings, generate_sample, skin_layout
+
+    r = models.G.settings.resolution
+    layout = skin_layout(models.root, r)
+    index = 0
+    while True:
+        smp = generate_sample(layout, seed, index, SkinDataSettings(size=r))
+        t = [torch.from_numpy(np.ascontiguousarray(a)).float().reshape(r, r, -1).permute(2, 0, 1)[None]
+             for a in (smp.albedo, smp.specular, smp.normals)]
+        maps = ReflectanceMaps(*t)
+        if off_tone_fraction(maps.albedo, models.shape_model.region_uv) <= max_off_tone:
+            yield index, maps
+        index += 1
 
 
 def list_subjects(data_dir: Path) -> list[Path]:

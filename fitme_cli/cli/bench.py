@@ -22,10 +22,13 @@ __all__ = ["command"]
 @click.option("--update-baseline", is_flag=True, help="With --regress: rewrite BASELINE.json from this run.")
 @click.option("--stability", is_flag=True, help="Only the stability suite: exit 1 when a case fails.")
 @click.option("--subjects", type=click.IntRange(1, 50), help="Synthetic subjects (default 2 with --quick, else 4).")
+@click.option("--reflectance", default="gan", show_default=True, type=click.Choice(["gan", "data"]),
+              help="The subjects' maps: drawn from the shipped BRDF-GAN, or held-out procedural data that no "
+                   "generator draws exactly (the same subjects for every generator).")
 @click.option("--repeats", default=1, show_default=True, type=click.IntRange(1, 20), help="Fits per (setting, subject); time is the median.")
 @click.option("--threads", default=1, show_default=True, type=click.IntRange(1, 256), help="torch threads per fit.")
 def command(out_dir: Path, quick: bool, photos_dir: Path | None, baseline: Path | None, update_baseline: bool,
-            stability: bool, subjects: int | None, repeats: int, threads: int) -> None:
+            stability: bool, subjects: int | None, reflectance: str, repeats: int, threads: int) -> None:
     """Benchmark `fitme fit` on synthetic subjects with ground truth and on real photos.
 
     \b
@@ -52,7 +55,7 @@ def command(out_dir: Path, quick: bool, photos_dir: Path | None, baseline: Path 
     if stability:
         failed |= _stability(out_dir)
     if baseline is None and not stability:
-        _sweep(out_dir, quick, photos_dir, subjects, repeats, threads)
+        _sweep(out_dir, quick, photos_dir, subjects, reflectance, repeats, threads)
     if failed:
         sys.exit(1)
 
@@ -103,7 +106,8 @@ def _stability(out_dir: Path) -> bool:
     return bool(bad)
 
 
-def _sweep(out_dir: Path, quick: bool, photos_dir: Path | None, subjects: int | None, repeats: int, threads: int) -> None:
+def _sweep(out_dir: Path, quick: bool, photos_dir: Path | None, subjects: int | None, reflectance: str, repeats: int,
+           threads: int) -> None:
     import json
     import platform
     import time
@@ -122,8 +126,8 @@ def _sweep(out_dir: Path, quick: bool, photos_dir: Path | None, subjects: int | 
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--photos") from None
     models = load_models()
-    dirs = make_bench_set(out_dir / "data", BenchSetSettings(n_subjects=n), models)
-    _log(f"bench: {n} subjects in {out_dir / 'data'}")
+    dirs = make_bench_set(out_dir / "data", BenchSetSettings(n_subjects=n, reflectance=reflectance), models)
+    _log(f"bench: {n} subjects ({reflectance} maps) in {out_dir / 'data'}")
     vs = variants(quick)
     results = run_sweep(vs, dirs, out_dir / "runs", threads, repeats, log=_log)
     write_csv(results, out_dir / "results.csv")

@@ -108,7 +108,8 @@ class SyntheticSubject:
     clean: (V, H, W, 3) uint8 sRGB, the renders before blur, noise and JPEG.
     masks: (V, H, W) bool, pixels whose centre the mesh covers.
     p_s: (1, K) float32 identity coefficients; p_e: (V, E) float32 expression activations, one row per view.
-    z: (1, z_dim) float32 the latent; ws: (1, num_ws, w_dim) float32 the truncated W the maps come from.
+    z: (1, z_dim) float32 the latent; ws: (1, num_ws, w_dim) float32 the truncated W the maps come from; both
+    None when the maps were given (``make_subject``'s ``maps``).
     z_redraws: how many z were rejected as off-tone before this one (0: the seed's first draw).
     off_tone: fraction of the face's "skin" texels off the forehead tone (``off_tone_fraction``).
     maps: ReflectanceMaps (1, ., R, R): albedo linear [0, 1], specular linear [0, 1], unit tangent-space normals.
@@ -128,8 +129,8 @@ class SyntheticSubject:
     masks: np.ndarray
     p_s: torch.Tensor
     p_e: torch.Tensor
-    z: torch.Tensor
-    ws: torch.Tensor
+    z: torch.Tensor | None
+    ws: torch.Tensor | None
     maps: ReflectanceMaps
     cameras: Camera
     lights: Lights
@@ -281,10 +282,15 @@ def _degrade(img: np.ndarray, s: SyntheticSettings, rng: np.random.Generator) ->
 
 
 def make_subject(G: Generator, shape_model, renderer: Renderer | None = None,
-                 settings: SyntheticSettings = SyntheticSettings()) -> SyntheticSubject:
+                 settings: SyntheticSettings = SyntheticSettings(), maps: ReflectanceMaps | None = None) -> SyntheticSubject:
     """Draw and render one synthetic subject (see the module docstring). ``G``: the BRDF-GAN;
     ``shape_model``: a ``ShapeModel``; ``renderer``: ``Renderer.for_shape_model(shape_model)`` (built
-    when None). Runs on the CPU, under ``torch.no_grad``; deterministic for given settings."""
+    when None). Runs on the CPU, under ``torch.no_grad``; deterministic for given settings.
+
+    ``maps``: reflectance maps (1, ., R, R) at G's resolution to use instead of G's, e.g. a held-out sample of the
+    training data, so that the subject does not depend on the generator a fit uses (``bench.dataset``). The
+    subject's z and ws are then None and nothing is redrawn; identity, cameras and lights are the seed's, as for
+    the G-drawn subject of the same seed."""
     s = settings
     if not isinstance(s, SyntheticSettings):
         raise ValueError(f"settings must be a SyntheticSettings, got {type(s).__name__}")
@@ -293,6 +299,13 @@ def make_subject(G: Generator, shape_model, renderer: Renderer | None = None,
             raise ValueError(f"shape_model has no {name!r}: expected a fitme ShapeModel")
     if not hasattr(G, "mapping") or not hasattr(G, "synthesis"):
         raise ValueError(f"G must be a BRDF-GAN Generator, got {type(G).__name__}")
+    gs = G.settings
+    if maps is not None:
+        want = {"albedo": 3, "specular": 1, "normals": 3}
+        got = {k: tuple(getattr(maps, k).shape) for k in want}
+        if any(g != (1, c, gs.resolution, gs.resolution) for g, c in zip(got.values(), want.values())):
+            raise ValueError(f"maps must be (1, C, {gs.resolution}, {gs.resolution}) albedo 3, specular 1, normals 3 "
+                             f"channels, got {got}")
     if renderer is None:
         renderer = Renderer.for_shape_model(shape_model)
     if renderer.n_vertices != shape_model.mean.shape[0]:
@@ -300,7 +313,6 @@ def make_subject(G: Generator, shape_model, renderer: Renderer | None = None,
 
     rng = np.random.default_rng(s.seed)
     v = s.n_views
-    gs = G.settings
     kw = {"dtype": shape_model.mean.dtype, "device": shape_model.mean.device}
     with torch.no_grad():
         # identity and expressions
@@ -312,7 +324,11 @@ def make_subject(G: Generator, shape_model, renderer: Renderer | None = None,
         # reflectance: the seed's own z first; redraws come from their own streams, so a subject that
         # needs none is the same as before redraws existed, and the rest of the scene never changes
         best = None
-        for k in range(s.max_redraws + 1):
+        if maps is not None:
+            rng.normal(0.0, 1.0, (1, gs.z_dim))  # the seed's z, drawn and unused: the scene stays the seed's
+            maps = ReflectanceMaps(*(t.detach().float().to(G.w_avg.device) for t in (maps.albedo, maps.specular, maps.normals)))
+            best = (off_tone_fraction(maps.albedo, shape_model.region_uv), 0, None, None, maps)
+        for k in range(s.max_redraws + 1 if maps is None else 0):
             zr = rng if k == 0 else np.random.default_rng([s.seed, k])
             z = torch.tensor(zr.normal(0.0, 1.0, (1, gs.z_dim)), dtype=torch.float32, device=G.w_avg.device)
             ws = G.ws(z, truncation_psi=s.truncation)
@@ -339,7 +355,8 @@ def make_subject(G: Generator, shape_model, renderer: Renderer | None = None,
         i68 = px[:, shape_model.ibug68.cpu().numpy()]
     photos = np.stack([_degrade(c, s, rng) for c in clean])
     return SyntheticSubject(photos, clean, out.mask[:, 0].cpu().numpy() > 0.5, p_s.float().cpu(), p_e.float().cpu(),
-                            z.cpu(), ws.cpu(), ReflectanceMaps(*(t.cpu() for t in (maps.albedo, maps.specular, maps.normals))),
+                            None if z is None else z.cpu(), None if ws is None else ws.cpu(),
+                            ReflectanceMaps(*(t.cpu() for t in (maps.albedo, maps.specular, maps.normals))),
                             cams, lights, shp.vertices.float().cpu(), neutral.float().cpu(), px, i68, yaws, effects, s,
                             redraws, off)
 
