@@ -26,7 +26,8 @@ from ..maps import ReflectanceMaps
 from .ops import bias_lrelu, conv_down2x, downsample2x, modulated_conv2d, upsample2x
 
 __all__ = ["MODALITIES", "GanSettings", "GanImages", "ReflectanceMaps", "MappingNetwork", "SynthesisNetwork",
-           "Generator", "Discriminator", "PatchDiscriminator", "encode_maps", "decode_maps", "decode_albedo"]
+           "Generator", "Discriminator", "PatchDiscriminator", "encode_maps", "decode_maps", "decode_albedo",
+           "decode_specular"]
 
 
 def _full_precision(x: torch.Tensor) -> torch.autocast:
@@ -118,10 +119,15 @@ def decode_albedo(albedo: torch.Tensor) -> torch.Tensor:
     return srgb_to_linear(((albedo + 1) / 2).clamp(0, 1))
 
 
+def decode_specular(specular: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(N, 1, R, R) network-space specular albedo -> linear specular albedo in [0, 1] (differentiable)."""
+    return (specular * s.specular_scale + s.specular_offset).clamp(0, 1)
+
+
 def decode_maps(images: GanImages, s: GanSettings) -> ReflectanceMaps:
     """Network space -> physical maps (differentiable; values clamped into range)."""
     albedo = decode_albedo(images.albedo)
-    specular = (images.specular * s.specular_scale + s.specular_offset).clamp(0, 1)
+    specular = decode_specular(images.specular, s)
     n = images.normals * s.normal_scale
     # a generator may output z <= 0 early in training; keep the normal in the outward hemisphere
     n = torch.cat([n[:, :2], (n[:, 2:3] + 1).clamp(min=1e-3)], 1)

@@ -30,7 +30,7 @@ from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard
 from .latents import sample_z
 from .metrics import (crown_flow, detail_link, detail_map, gaussian_blur, log_chroma, region_band_energy, region_coherence,
                       region_labels, region_moments, region_relief, region_spectrum, soft_hair_share, soft_hairline_share)
-from .networks import Discriminator, GanSettings, Generator, PatchDiscriminator, decode_albedo
+from .networks import Discriminator, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_specular
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
@@ -43,7 +43,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
 # ``running_{term}`` in the state, and its measure in ``_region_measures``
 _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone", "crown", "mean_map", "tone_order",
-                 "detail_map", "tone_band", "hairline_share", "chroma_band")
+                 "detail_map", "tone_band", "hairline_share", "chroma_band", "specular_band")
 
 
 @dataclass(frozen=True)
@@ -230,6 +230,12 @@ class TrainSettings:
     # person test stayed 32 of 32: not in the committed state (docs/brdf_gan.md). Drift-style. 0: off (the paper)
     chroma_band_weight: float = 0.0
     chroma_band_beta: float = 0.99  # per-step decay of the running half-batch chroma band RMS
+    # not in the paper: the band term on the specular albedo: each region's RMS of its ``band_levels`` finest Laplacian
+    # bands (``_specular_bands``, linear). At 262.02 kimg the face's finest specular band was 0.65 (nose), 0.74
+    # (forehead) and 0.90 (skin) of the data's and the next one 1.1-1.25: the grain an octave too coarse, the judges'
+    # "soft specular" (docs/brdf_gan.md, "Where the judges' softness is not"). Drift-style like the band term. 0: off
+    specular_band_weight: float = 0.0
+    specular_band_beta: float = 0.99  # per-step decay of the running specular band RMS
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -420,6 +426,10 @@ class TrainState:
     # the chroma-band term's target, and G's running ones; derived and saved like the link's
     chroma_band_target: torch.Tensor | None = None
     running_chroma_band: torch.Tensor | None = None
+    # (k * band_levels,) float32: the data's per-region specular band RMS (``_specular_bands``), the specular-band
+    # term's target, and G's running one; derived and saved like the link's
+    specular_band_target: torch.Tensor | None = None
+    running_specular_band: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -732,6 +742,13 @@ def _albedo_chroma_bands(x: torch.Tensor, regions: torch.Tensor, levels: int) ->
     return _by_half(bands, dark)
 
 
+def _specular_bands(x: torch.Tensor, regions: torch.Tensor, levels: int, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k * levels): per region, the RMS of the linear specular albedo's ``levels``
+    finest Laplacian bands (``metrics.region_band_energy``), the specular-band term's measure. ``s``: the maps'
+    decoding (``networks.decode_specular``)."""
+    return region_band_energy(decode_specular(x[:, 3:4], s), regions, levels).flatten(1)
+
+
 def data_band(data: torch.Tensor, regions: torch.Tensor, levels: int, n: int = 512, chunk: int = 64) -> torch.Tensor:
     """(k * levels * 3,) float32: the per-region albedo band RMS of the first n data samples (the band term's target)."""
     return _data_mean(lambda x: _albedo_bands(x, regions, levels), data, n, chunk)
@@ -1017,7 +1034,7 @@ def set_branch_noise(state: TrainState, strength: float) -> None:
                     p.fill_(strength)
 
 
-def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]:
+def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]:
     """What each per-region drift term measures: name -> f(fake (B, 7, R, R), regions) -> (B, m). One table
     for ``train_step`` and ``warm_running``, so that a warm start measures what the term pulls."""
     return {"coherence": _albedo_coherence, "band": lambda x, regions: _albedo_bands(x, regions, t.band_levels),
@@ -1025,21 +1042,23 @@ def _region_measures(t: TrainSettings) -> dict[str, Callable[[torch.Tensor, torc
             "tone": _albedo_tone, "crown": _albedo_crown, "mean_map": _mean_map, "tone_order": _albedo_tone_order,
             "detail_map": _detail_map, "tone_band": lambda x, regions: _albedo_tone_bands(x, regions, t.band_levels),
             "hairline_share": _albedo_hairline_share,
-            "chroma_band": lambda x, regions: _albedo_chroma_bands(x, regions, t.band_levels)}
+            "chroma_band": lambda x, regions: _albedo_chroma_bands(x, regions, t.band_levels),
+            "specular_band": lambda x, regions: _specular_bands(x, regions, t.band_levels, gan)}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum: mean
 # TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the same over ``_tone_scale``;
 # tone_order: the same over ``_tone_order_scale``; detail_map: over ``_detail_map_scale``; tone_band and chroma_band
-# as band; beard, hairline_share, crown and mean_map: mean |running - target|
+# and specular_band as band; beard, hairline_share, crown and mean_map: mean |running - target|
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
                   "tone": (tone_loss, _tone_gap), "crown": (coherence_loss, _abs_gap),
                   "mean_map": (coherence_loss, _abs_gap), "tone_order": (tone_order_loss, _tone_order_gap),
                   "detail_map": (detail_map_loss, _detail_map_gap), "tone_band": (band_loss, _relative_gap),
-                  "hairline_share": (coherence_loss, _abs_gap), "chroma_band": (band_loss, _relative_gap)}
+                  "hairline_share": (coherence_loss, _abs_gap), "chroma_band": (band_loss, _relative_gap),
+                  "specular_band": (band_loss, _relative_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
@@ -1171,7 +1190,7 @@ def train_step(state: TrainState, reals: torch.Tensor) -> dict[str, float]:
     total = (loss_g + t.moment_weight * loss_m + t.moment_drift_weight * loss_drift + t.link_weight * loss_link
              + t.patch_weight * loss_pg)
     gaps: dict[str, float] = {}
-    for term, measure in _region_measures(t).items():
+    for term, measure in _region_measures(t, state.gan).items():
         weight = getattr(t, f"{term}_weight")
         loss, running, gap = _region_term(
             term, weight, getattr(t, f"{term}_beta"), state.regions, getattr(state, f"{term}_target"),
@@ -1288,7 +1307,7 @@ def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
     Returns the names of the terms started."""
     t = state.train
     G = state.G_ema if t.drift_on_ema else state.G  # the generator the running means follow
-    region = _region_measures(t)
+    region = _region_measures(t, state.gan)
     # running mean -> (weight, measure, target whose shape it must have; None: fixed shape)
     measures = {
         "running_moments": (t.moment_drift_weight, batch_moments, None),
@@ -1511,7 +1530,7 @@ def train(state: TrainState, data: torch.Tensor, run_dir: Path, progress: bool =
         if split != t.side_regions:
             raise ValueError(f"train: side_regions is {t.side_regions} but state.regions is {'' if split else 'not '}split "
                              f"into sides (labels >= {SIDE_OFFSET}); build it with data.load_regions(resolution, sides={t.side_regions})")
-    for term, measure in _region_measures(t).items():  # the per-region terms' targets: the data's mean measure
+    for term, measure in _region_measures(t, state.gan).items():  # the per-region terms' targets: the data's mean measure
         if getattr(t, f"{term}_weight") > 0 and getattr(state, f"{term}_target") is None:
             if state.regions is None:
                 raise ValueError(f"train: {term}_weight {getattr(t, f'{term}_weight')} needs state.regions (the UV region labels)")
