@@ -1,6 +1,6 @@
 """A real photo that ships in a package (scikit-image's astronaut), fitted at the fast preset's
-budget: the loss decreases, gradients stay finite, and the evaluation network (FaceNet, not used by
-the fit) finds the render more like the photo than the starting render."""
+budget (inversion, then tuning): the loss decreases, gradients stay finite, and the evaluation network
+(FaceNet, not used by the fit) finds the render more like the photo than the starting render."""
 
 import numpy as np
 import pytest
@@ -33,6 +33,15 @@ def fitted(models_root):
     start = invert([p], load_generator(models_root), sm, desc, sm.landmarks, jaw, InversionSettings(iterations=1, lr=0.0, **base))
     G = load_generator(models_root)
     res = invert([p], G, sm, desc, sm.landmarks, jaw, InversionSettings(iterations=fast.iterations, **base))
+    if fast.tune_iterations:  # as `fitme fit --preset fast`: the render after tuning is what the user gets
+        from dataclasses import replace
+
+        from fitme_cli.fitting.invert import TuningSettings, tune
+        from fitme_cli.shape.regions import region_masks
+
+        mapped = torch.from_numpy(region_masks(sm.region_uv.numpy().astype(np.uint8), G.settings.resolution)["mapped"])
+        tr = tune([p], G, res, sm, desc, sm.landmarks, jaw, mapped, TuningSettings(iterations=fast.tune_iterations))
+        res = replace(res, maps=tr.maps)
     return p, sm, desc, G, start, res
 
 
@@ -76,5 +85,7 @@ def test_astronaut_render_looks_more_like_her_to_the_evaluation_network(fitted, 
     # measured: 0.03 -> 0.37 with the 35 kimg BRDF-GAN (the fast preset: 30 iterations at 128^2, no coarse phase); ~0.48
     # at the default preset. The 92 kimg model (2026-11-24): 0.123 -> 0.353 at noise gain 0.35, 0.13 -> 0.22 at full
     # noise (0.18-0.25 over 24-60 iterations: why InversionSettings.noise_gain exists). For scale:
-    # her own photo, transformed, scores 0.83-1.00 and other people's photos 0.12-0.33 (docs/perception.md)
-    assert after > before + 0.15 and after > 0.2, (before, after)
+    # her own photo, transformed, scores 0.83-1.00 and other people's photos 0.12-0.33 (docs/perception.md). The 262.02
+    # kimg G (2026-11-29), closer to its data, gains less at this budget: 0.072 -> 0.187 without tuning, 0.228 with the
+    # fast preset's 10 tuning iterations (0.271 with 20); a fit that does nothing stays at 0.07
+    assert after > before + 0.12 and after > 0.2, (before, after)

@@ -126,7 +126,8 @@ def run_regress(s: RegressSettings = RegressSettings(), models=None, log=lambda 
 
     models = models or load_models()
     fs = s.fit_settings()
-    members = [replace(fs, iterations=1)] if start else [fs.member(m, s.jitter) for m in range(s.members)]
+    # the start is where the fit starts from: 1 iteration, and no tuning (the fast preset tunes since the 262.02 kimg G)
+    members = [replace(fs, iterations=1, tune_iterations=0)] if start else [fs.member(m, s.jitter) for m in range(s.members)]
     cases = []
     for name in s.sample_photos:
         img = sample_photo(name)

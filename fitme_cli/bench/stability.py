@@ -5,8 +5,8 @@ strong side light (re-rendered with one light from 80 degrees off the camera and
 very dark (linear x 0.05) and overexposed (linear x 4, clipped) photos, sunglasses (a dark band over the
 eyes), a tiny face (the photo at 0.22 x in a 768^2 canvas; also as from a 340 mm lens), heavy JPEG (quality 5) and grayscale; plus
 the unmodified photo as a reference. Each case passes when the fit finishes with no NaN / Inf in
-parameters, maps or losses, the total loss decreases (mean of the last k < mean of the first k, k =
-min(5, iterations // 2)) and the maps are in range (albedo and specular in [0, 1], unit normals). A
+parameters, maps or losses (the tuning's too), the inversion's total loss decreases (mean of the last k < mean of
+the first k, k = min(5, iterations // 2)) and the maps are in range (albedo and specular in [0, 1], unit normals). A
 photo in which detection finds no face passes as a clean failure (NoFaceFound, what ``fitme fit``
 reports with exit code 16); any other exception fails."""
 
@@ -231,8 +231,10 @@ def run_stability(models=None, s: StabilitySettings = StabilitySettings(), log=l
             results.append(StabilityResult(case, False, "fail", f"crash: {type(e).__name__}: {e}"[:300]))
             log(f"stability: {case}: CRASH {type(e).__name__}: {e}")
             continue
-        checks = check_fit(o.inversion, o.maps, o.history)
-        totals = np.array([h["total"] for h in o.history])
+        # the loss must fall over the inversion: tuning sums other terms, so its totals are not comparable with it
+        checks = check_fit(o.inversion, o.maps, o.inversion.history)
+        checks["finite tuning losses"] = _finite([list(h.values()) for h in o.tune_history])
+        totals = np.array([h["total"] for h in o.inversion.history])
         k = min(5, len(totals) // 2) or 1
         ok = all(checks.values())
         bad = [c for c, v in checks.items() if not v]
