@@ -68,6 +68,10 @@ def test_check_fit_catches_each_failure():
     assert not check_fit(_Inv(), _maps(normal_len=0.5), hist)["unit normals"]
     assert not check_fit(_Inv(), _maps(), hist[::-1])["loss decreases"]
     assert not check_fit(_Inv(), _maps(), hist[:-1] + [{"total": float("inf")}])["finite losses"]
+    tuned = [{"total": 0.1, "flip": 0.01}] * 3
+    assert all(check_fit(_Inv(), _maps(), hist, tune_history=tuned).values())  # tuning's lower totals are no decrease
+    assert not check_fit(_Inv(), _maps(), hist, tune_history=tuned + [{"total": float("nan"), "flip": 0.0}])[
+        "finite tuning losses"]
     with pytest.raises(ValueError, match="empty loss history"):
         check_fit(_Inv(), _maps(), [])
     with pytest.raises(ValueError, match="unknown \\['fog'\\]"):

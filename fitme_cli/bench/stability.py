@@ -189,8 +189,11 @@ def _finite(x) -> bool:
     return all(math.isfinite(v) for v in np.ravel(np.asarray(x, np.float64)))
 
 
-def check_fit(inv, maps, history: list[dict[str, float]], tol: float = 1e-4) -> dict[str, bool]:
-    """The stability checks on an inversion result, the final maps and the loss history: {check: passed}."""
+def check_fit(inv, maps, history: list[dict[str, float]], tol: float = 1e-4,
+              tune_history: list[dict[str, float]] = ()) -> dict[str, bool]:
+    """The stability checks on an inversion result, the final maps, the inversion's loss history and the tuning's:
+    {check: passed}. The loss must fall over the inversion; the tuning's totals sum other terms, so they are only
+    checked for being finite."""
     import torch
 
     if not history:
@@ -205,6 +208,7 @@ def check_fit(inv, maps, history: list[dict[str, float]], tol: float = 1e-4) -> 
         "finite params": all(_finite(p) for p in params),
         "finite maps": all(_finite(t) for t in (maps.albedo, maps.specular, maps.normals)),
         "finite losses": all(_finite(list(h.values())) for h in history),
+        "finite tuning losses": all(_finite(list(h.values())) for h in tune_history),
         "loss decreases": bool(totals[-k:].mean() < totals[:k].mean()),
         "albedo in [0, 1]": bool(maps.albedo.min() >= -tol and maps.albedo.max() <= 1 + tol),
         "specular in [0, 1]": bool(maps.specular.min() >= -tol and maps.specular.max() <= 1 + tol),
@@ -231,9 +235,7 @@ def run_stability(models=None, s: StabilitySettings = StabilitySettings(), log=l
             results.append(StabilityResult(case, False, "fail", f"crash: {type(e).__name__}: {e}"[:300]))
             log(f"stability: {case}: CRASH {type(e).__name__}: {e}")
             continue
-        # the loss must fall over the inversion: tuning sums other terms, so its totals are not comparable with it
-        checks = check_fit(o.inversion, o.maps, o.inversion.history)
-        checks["finite tuning losses"] = _finite([list(h.values()) for h in o.tune_history])
+        checks = check_fit(o.inversion, o.maps, o.inversion.history, tune_history=o.tune_history)
         totals = np.array([h["total"] for h in o.inversion.history])
         k = min(5, len(totals) // 2) or 1
         ok = all(checks.values())
