@@ -224,7 +224,7 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                         for j, lab in enumerate(region_labels(regions))},
         "albedo_spectrum_tv_by_region": spectrum,
         # a soft hairline told G's maps from the data's (docs/brdf_gan.md): per zone and band, G's RMS over the data's
-        "albedo_band_ratio_hairline": {zone: [round(float(g / max(float(d), 1e-12)), 3) for g, d in zip(gan.hairline[j], real.hairline[j])]
+        "albedo_band_ratio_hairline": {zone: _ratios(gan.hairline[j], real.hairline[j])
                                        for j, zone in enumerate(("face_side", "hairline", "scalp_side"))},
         # grain pulled onto one side of a region told G's eyes from the data's (docs/brdf_gan.md): per region, the
         # finest band's RMS, G's over the data's, in its [left, right] half as the UV map shows it (u < 0.5, u >= 0.5)
@@ -236,24 +236,19 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                            for j, lab in enumerate(region_labels(regions))},
         # a region of the wrong colour or spread (the eye openings, docs/brdf_gan.md): per region, eye openings and
         # brow edges included, G's mean over the data's of each albedo channel's [r, g, b] mean and within-region std
-        "albedo_moment_ratio_by_region": {_region_name(lab): {part: [round(float(g / max(float(d), 1e-12)), 3)
-                                                                     for g, d in zip(gan.moments[j, i], real.moments[j, i])]
+        "albedo_moment_ratio_by_region": {_region_name(lab): {part: _ratios(gan.moments[j, i], real.moments[j, i])
                                                               for i, part in enumerate(("mean", "std"))}
                                           for j, lab in enumerate(flabels)},
         # soft brows and blobby eyes (docs/brdf_gan.md): per band (finest first), G's albedo RMS over the data's
-        "albedo_band_ratio_features": {_region_name(lab): [round(float(g / max(float(d), 1e-12)), 3)
-                                                           for g, d in zip(gan.feature_bands[flabels.index(lab)], real.feature_bands[flabels.index(lab)])]
+        "albedo_band_ratio_features": {_region_name(lab): _ratios(gan.feature_bands[flabels.index(lab)],
+                                                                  real.feature_bands[flabels.index(lab)])
                                        for lab in (EYE_LABEL, BROW_EDGE_LABEL) if lab in flabels},
         # blotches of colour (the 239.00 kimg person test's hazy, blotchy faces, docs/brdf_gan.md): per region and band
         # (finest first), G's RMS of the albedo's log chromaticity over the data's (mean of red-green and yellow-blue)
-        "albedo_chroma_band_ratio_by_region": {_region_name(lab): [round(float(g / max(float(d), 1e-12)), 3)
-                                                                   for g, d in zip(gan.chroma_bands[j], real.chroma_bands[j])]
-                                               for j, lab in enumerate(region_labels(regions))},
+        "albedo_chroma_band_ratio_by_region": _ratios_by_region(gan.chroma_bands, real.chroma_bands, regions),
         # a soft specular (the 262.02 kimg judges; docs/brdf_gan.md "Where the judges' softness is not"): per region and
         # band (finest first), G's RMS of the linear specular albedo over the data's
-        "specular_band_ratio_by_region": {_region_name(lab): [round(float(g / max(float(d), 1e-12)), 3)
-                                                              for g, d in zip(gan.specular_bands[j], real.specular_bands[j])]
-                                          for j, lab in enumerate(region_labels(regions))},
+        "specular_band_ratio_by_region": _ratios_by_region(gan.specular_bands, real.specular_bands, regions),
         # beards are there or not in the data, and a G can lose them while every mean above holds (docs/brdf_gan.md):
         # per sample, the share of the beard zone that reads as hair (``metrics.hair_share``)
         "beard_hair_share": {"data": _beard_shares(real.beard), "gan": _beard_shares(gan.beard)},
@@ -328,6 +323,16 @@ def _by_side(ratio: torch.Tensor, regions: torch.Tensor) -> dict[str, list[float
         out[_region_name(lab)] = [round(float(ratio[labels.index(lab + off)]), 3) if lab + off in labels else None
                                   for off in (0, SIDE_OFFSET)]
     return out
+
+
+def _ratios(gan, real) -> list[float]:
+    """G's values over the data's, entry by entry (the data's floored at 1e-12), rounded for the card."""
+    return [round(float(g / max(float(d), 1e-12)), 3) for g, d in zip(gan, real)]
+
+
+def _ratios_by_region(gan: torch.Tensor, real: torch.Tensor, regions: torch.Tensor) -> dict[str, list[float]]:
+    """(k, m) per-region measures of G and of the data -> {region name: ``_ratios`` of its row}."""
+    return {_region_name(lab): _ratios(gan[j], real[j]) for j, lab in enumerate(region_labels(regions))}
 
 
 def _region_name(label: int) -> str:
