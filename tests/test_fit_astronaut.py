@@ -86,6 +86,6 @@ def test_astronaut_render_looks_more_like_her_to_the_evaluation_network(fitted, 
     # at the default preset. The 92 kimg model (2026-11-24): 0.123 -> 0.353 at noise gain 0.35, 0.13 -> 0.22 at full
     # noise (0.18-0.25 over 24-60 iterations: why InversionSettings.noise_gain exists). For scale:
     # her own photo, transformed, scores 0.83-1.00 and other people's photos 0.12-0.33 (docs/perception.md). The 262.02
-    # kimg G (2026-11-29), closer to its data, gains less at this budget: 0.072 -> 0.187 without tuning, 0.228 with the
-    # fast preset's 10 tuning iterations (0.271 with 20); a fit that does nothing stays at 0.07
+    # kimg G (2026-11-29), closer to its data, gains less at this budget: 0.072 -> 0.187 without tuning, 0.228 with 10
+    # tuning iterations, 0.271 with the fast preset's 20 (since 2026-11-30); a fit that does nothing stays at 0.07
     assert after > before + 0.12 and after > 0.2, (before, after)

@@ -33,7 +33,7 @@ class FitSettings:
     """The knobs of one fit; the defaults are the fast preset (``fitting/presets.py``)."""
 
     iterations: int = 30
-    tune_iterations: int = 10
+    tune_iterations: int = 20
     render_size: int = 128
     coarse_fraction: float = 0.0
     coarse_resolution: int = 128

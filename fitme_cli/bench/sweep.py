@@ -54,7 +54,7 @@ class Variant:
 
 def variants(quick: bool) -> list[Variant]:
     """The presets and the single-setting changes, each relative to the fast preset (30 iterations at
-    128^2 on full maps, no effect selection: specular and subsurface on, 10 tuning iterations); every change row
+    128^2 on full maps, no effect selection: specular and subsurface on, 20 tuning iterations); every change row
     must change the settings (tested: the coarse-map rows once set a resolution for a coarse phase
     the fast preset no longer had)."""
     coarse = [Variant(f"coarse 40 % at {r}²", coarse_fraction=0.4, coarse_resolution=r) for r in (64, 128)]
@@ -71,7 +71,7 @@ def variants(quick: bool) -> list[Variant]:
     v += coarse
     v += [Variant("-specular", forced_effects=(("specular", False),)), Variant("-subsurface", forced_effects=(("subsurface", False),))]
     v += [Variant(f"+{e}", forced_effects=((e, True),)) for e in ("sh_ambient", "shadows", "multi_light")]
-    v += [Variant("no tuning", tune_iterations=0), Variant("tune 20", tune_iterations=20), Variant("tune 40", tune_iterations=40)]
+    v += [Variant("no tuning", tune_iterations=0), Variant("tune 10", tune_iterations=10), Variant("tune 40", tune_iterations=40)]
     v += [Variant("preset fast, 3 views", views=3), Variant("preset default, 3 views", "default", views=3)]
     return v
 

@@ -32,12 +32,12 @@ PRESETS = {
     # subjects' albedo Delta E 5.49 -> 5.36 (docs/fitting.md "Held-out data subjects"); ~+7 s per fit
     "default": FitPreset("default", 200, 60, 256, 0.0, 128, True),
     # 30 iterations at 128^2 on full maps (no coarse phase: it saved no time here and cost accuracy,
-    # docs/benchmarks.md) and 10 tuning iterations: a preview in < 15 s. Tuning since the 262.02 kimg G: without it
+    # docs/benchmarks.md) and 20 tuning iterations: a preview in < 15 s. Tuning since the 262.02 kimg G: without it
     # the sample photos' likeness fell to 0.285 (151.01 kimg G: 0.345); with 10 / 15 / 20 iterations 0.324 / 0.331 /
-    # 0.370, the held-out data subjects' albedo Delta E unchanged (6.65 -> 6.75 at 20); but 20 took a 12 MP photo to
-    # 15.2-16.0 s (docs/fitting.md)
-    # (12 MP photo, 2 cores: 50 iterations took 16.1 s, 40 took 14.6-16.0 s; docs/fitting.md)
-    "fast": FitPreset("fast", 30, 10, 128, 0.0, 128, False),
+    # 0.370, the held-out data subjects' albedo Delta E unchanged (6.65 -> 6.75 at 20). 20 took a 12 MP photo to
+    # 15.2-16.0 s until the fit's G ran channels-last (store.load_generator): 13.6 s since (docs/fitting.md)
+    # (12 MP photo, 2 cores: 50 inversion iterations took 16.1 s, 40 took 14.6-16.0 s; docs/fitting.md)
+    "fast": FitPreset("fast", 30, 20, 128, 0.0, 128, False),
     # the supplementary's 250 inversion iterations, rendered at the paper's 512^2; tuning as long as the default's
     # (the supplementary's 30 was fewer than the default now has; 60 is not measured at 512^2)
     "best": FitPreset("best", 250, 60, 512, 0.0, 128, True),

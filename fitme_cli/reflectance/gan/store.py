@@ -39,7 +39,10 @@ def save_generator(G: Generator, models_dir: Path, card: dict) -> Path:
 
 
 def load_generator(models_dir: Path, device: str | torch.device = "cpu") -> Generator:
-    """The shipped generator in eval mode with gradients off (the tuning stage turns on the layers it trains)."""
+    """The shipped generator in eval mode with gradients off (the tuning stage turns on the layers it trains),
+    its 4-D weights in channels-last layout, so the synthesis' activations are too: the fit's unit, a
+    synthesis forward + backward at batch 1 on 2 CPU threads, 0.136 -> 0.110 s with the 262.02 kimg G
+    (docs/fitting.md, "Channels-last"). Savers write ``.contiguous()`` copies, the standard layout."""
     from safetensors import safe_open
     from safetensors.torch import load_file
 
@@ -50,7 +53,7 @@ def load_generator(models_dir: Path, device: str | torch.device = "cpu") -> Gene
         settings = GanSettings(**json.loads(f.metadata()["gan"]))
     G = Generator(settings)
     G.load_state_dict(load_file(str(path)))
-    return G.to(device).eval().requires_grad_(False)
+    return G.to(device=device, memory_format=torch.channels_last).eval().requires_grad_(False)
 
 
 # 2: z from latents.sample_z (version 1 drew torch seed 0's stream, whose first vectors are the mapping's
