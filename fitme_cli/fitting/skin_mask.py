@@ -2,8 +2,13 @@
 
 From the landmarks: the union of FaceMesh's triangles (forehead to chin; FaceMesh leaves the eyes and the
 mouth open), minus the eyebrows and the lips, eroded away from the outline. Then a skin-colour model:
-a Gaussian in log-chromaticity and log-brightness fitted robustly to those pixels drops what is not
-skin inside them (fringe, glasses, a hand, deep shadow or a blown highlight)."""
+a Gaussian in log-chromaticity and log-brightness, fitted robustly to the cheeks and the nose (the band
+between the eyes' lower lids and the nose's base), drops what is not skin in the whole mask (fringe,
+glasses, a hand, deep shadow or a blown highlight).
+
+Why the band and not the whole mask (2026-11-30): a fringe covers much of the forehead, and a model fitted
+to the whole mask took its brown in as skin (the astronaut's bangs, a third of her forehead), so the
+tuning painted them into the albedo as a dark blotch (docs/fitting.md, "The skin mask's colour model")."""
 
 from __future__ import annotations
 
@@ -19,8 +24,13 @@ __all__ = ["SkinMaskSettings", "photo_skin_mask"]
 class SkinMaskSettings:
     erode_fraction: float = 0.02  # of the face width, away from the outline and the holes
     brow_width_fraction: float = 0.05  # eyebrow band thickness, of the face width
-    colour_sigmas: float = 3.0  # pixels further than this (Mahalanobis) from the skin colour are dropped
+    # pixels further than this (Mahalanobis) from the skin colour are dropped. With the cheek band's model, 3 drops
+    # 13 % of that band itself on the astronaut (the nose's shadow, under the eyes; 3.5: 8 %, 4: 5 %), but only 3
+    # also drops the shadow her bangs cast on her forehead, which the tuning painted purple at 3.5 and 4 (no hair
+    # geometry casts it in the render); the likeness did not move (docs/fitting.md, "The skin mask's colour model")
+    colour_sigmas: float = 3.0
     use_colour_model: bool = True
+    min_model_pixels: int = 64  # fewer in the cheek band (a tiny face): the model is fitted to the whole mask
 
 
 def _polyline(edges: np.ndarray) -> np.ndarray:
@@ -60,17 +70,32 @@ def photo_skin_mask(rgb: np.ndarray, landmarks: np.ndarray, triangles: np.ndarra
     k = max(1, int(round(s.erode_fraction * face_w)))
     mask = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1)))
     m = mask.astype(bool)
-    if s.use_colour_model and m.sum() > 64:
+    if s.use_colour_model and m.sum() > s.min_model_pixels:
         x = np.log(rgb[m].astype(np.float64) + 8.0)
         f = np.stack([x[:, 0] - x[:, 1], x[:, 2] - x[:, 1], x.mean(1)], 1)  # two chromaticities, brightness
-        med = np.median(f, 0)
-        dev = f - med
+        band = _cheek_band(landmarks, contours, h, w)[m]
+        model = f[band] if band.sum() > s.min_model_pixels else f
+        med = np.median(model, 0)
+        dev = model - med
         core = np.abs(dev).max(1) < 3 * 1.4826 * np.median(np.abs(dev), 0).max() + 1e-6
-        cov = np.cov(f[core].T) + np.eye(3) * 1e-4
-        d2 = np.einsum("ni,ij,nj->n", dev, np.linalg.inv(cov), dev)
+        cov = np.cov(model[core].T) + np.eye(3) * 1e-4
+        d2 = np.einsum("ni,ij,nj->n", f - med, np.linalg.inv(cov), f - med)
         keep = d2 < s.colour_sigmas**2
         idx = np.flatnonzero(m.ravel())
         flat = m.ravel().copy()
         flat[idx[~keep]] = False
         m = flat.reshape(h, w)
     return m.astype(np.float32)
+
+
+def _cheek_band(landmarks: np.ndarray, contours: dict[str, np.ndarray], h: int, w: int) -> np.ndarray:
+    """(H, W) bool: pixels between the eyes' lowest and the nose's lowest landmark, measured along the face's
+    own down axis (eyes' centre to the lips' centre), so a tilted head keeps its band."""
+    eyes = np.unique(np.concatenate([contours["left_eye"], contours["right_eye"]]).ravel())
+    lips, nose = np.unique(contours["lips"].ravel()), np.unique(contours["nose"].ravel())
+    top = landmarks[eyes].mean(0)
+    axis = landmarks[lips].mean(0) - top
+    axis = axis / max(float(np.linalg.norm(axis)), 1e-6)
+    yy, xx = np.mgrid[0:h, 0:w]
+    t = (xx - top[0]) * axis[0] + (yy - top[1]) * axis[1]
+    return (t > float(((landmarks[eyes] - top) @ axis).max())) & (t < float(((landmarks[nose] - top) @ axis).max()))
