@@ -723,6 +723,35 @@ def _two_regions(r: int = 16) -> torch.Tensor:
     return regions
 
 
+def test_region_texel_grain_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import region_texel_grain
+
+    r = 16
+    regions = _two_regions(r)
+    x = torch.randn(3, 2, r, r, generator=torch.Generator().manual_seed(0))
+    g = region_texel_grain(x, regions)
+    assert g.shape == (3, 2, 2)
+    # the slow reference: each texel's 4 neighbours (clamped at the border) minus 4x itself, averaged per region
+    lap = torch.zeros_like(x)
+    for i in range(r):
+        for j in range(r):
+            nb = [x[..., max(i - 1, 0), j], x[..., min(i + 1, r - 1), j], x[..., i, max(j - 1, 0)], x[..., i, min(j + 1, r - 1)]]
+            lap[..., i, j] = sum(nb) - 4 * x[..., i, j]
+    for k, lab in enumerate((2, 7)):
+        torch.testing.assert_close(g[:, k], lap[..., regions == lab].abs().mean(-1))
+    # a texel checkerboard of amplitude a: |Laplacian| 8a inside; a ramp and a constant: none (borders replicated)
+    check = 0.3 * (-1.0) ** (torch.arange(r)[:, None] + torch.arange(r)[None, :]).float()
+    torch.testing.assert_close(region_texel_grain(check.expand(1, 1, r, r), regions)[0, :, 0], torch.tensor([2.4, 2.4]))
+    ramp = torch.arange(r, dtype=torch.float32)[None, :].expand(r, r)
+    assert float(region_texel_grain(torch.stack([ramp, torch.full_like(ramp, 3.0)])[None], regions).abs().max()) == 0.0
+    g64 = torch.randn(2, 1, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(2), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: region_texel_grain(t, regions), (g64,))
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps and \(R, R\) uint8 regions matching them, got \(3, 16, 16\)"):
+        region_texel_grain(x[:, 0], regions)
+    with pytest.raises(ValueError, match="uint8 regions"):
+        region_texel_grain(x, regions.long())
+
+
 def test_region_coherence_known_values_gradients_and_bad_input():
     from fitme_cli.reflectance.gan.metrics import orientation_coherence, region_coherence
     from fitme_cli.reflectance.gan.train import data_coherence
@@ -2663,7 +2692,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_band_ratio_by_side", "albedo_normal_relief_by_region", "albedo_moment_ratio_by_region",
                       "albedo_band_ratio_features", "beard_hair_share", "crown_flow",
                       "mean_map_abs_diff", "detail_map_log2_ratio", "albedo_chroma_band_ratio_by_region",
-                      "specular_band_ratio_by_region"}
+                      "specular_band_ratio_by_region", "texel_grain_ratio_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -2702,6 +2731,9 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     spec_bands = m["specular_band_ratio_by_region"]
     assert set(spec_bands) == set(m["albedo_band_ratio_by_region"])
     assert all(len(v) == 3 and all(np.isfinite(b) and b >= 0 for b in v) for v in spec_bands.values())
+    grain = m["texel_grain_ratio_by_region"]  # albedo, specular, normals x, y
+    assert set(grain) == set(m["albedo_band_ratio_by_region"])
+    assert all(len(v) == 4 and all(np.isfinite(b) and b >= 0 for b in v) for v in grain.values())
     assert all(len(v) == 2 and all(0 <= c <= 1 for c in v) for r in coh.values() for v in r.values())
     spec = m["albedo_spectrum_tv_by_region"]  # only the regions with a whole 16^2 window at 64^2
     assert spec and set(spec) < set(coh) and "lips" not in spec

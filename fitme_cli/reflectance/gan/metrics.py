@@ -45,7 +45,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
-           "log_chroma"]
+           "log_chroma", "region_texel_grain"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -150,6 +150,21 @@ def region_band_energy(x: torch.Tensor, regions: torch.Tensor, levels: int = 3) 
     # ``orientation_coherence``
     flat = energy <= 0
     return (torch.where(flat, torch.ones_like(energy), energy).sqrt() * ~flat).permute(0, 3, 1, 2)
+
+
+def region_texel_grain(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, C) same dtype: per
+    sample and region of ``region_labels``, the mean |4-neighbour Laplacian| of each channel (edges replicated, so the
+    map's border adds none). Its response grows with the square of the frequency, so it weighs single-texel grain
+    (pores, speckle, strand edges) that the finest Laplacian-pyramid band (``region_band_energy``, 1-2 texels) shares
+    with the octave below it: at 265.00 kimg the face's specular is 0.92-0.99 of the data's in that band and 0.60-0.69
+    by this measure on the card (docs/brdf_gan.md, "Single-texel grain"). Differentiable almost everywhere."""
+    if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    lap = p[..., :-2, 1:-1] + p[..., 2:, 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:] - 4 * x
+    return (lap.abs().flatten(2) @ _region_weights(regions, x).T).transpose(1, 2)
 
 
 def region_moments(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
