@@ -1188,17 +1188,18 @@ def test_tone_bands_split_the_band_rms_by_the_batchs_tone_halves():
     _check_tone_halved_term(_albedo_tone_bands, "tone_band", x.detach(), regions)
 
 
-@pytest.mark.parametrize("name", ["tone_band", "chroma_band", "specular_band"])
+@pytest.mark.parametrize("name", ["tone_band", "chroma_band", "specular_band", "grain"])
 def test_tone_chroma_and_specular_band_weights_move_the_fakes_bands(name, tmp_path):
-    """Pulled up, the band RMS (both halves' of the log albedo or of its log chromaticity, or the specular's) grows,
-    pulled down it shrinks; it needs its regions and target, and bad settings are refused."""
-    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands, _albedo_tone_bands, _specular_bands
+    """Pulled up, the band RMS (both halves' of the log albedo or of its log chromaticity, or the specular's) or the
+    texel grain grows, pulled down it shrinks; it needs its regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands, _albedo_tone_bands, _specular_bands, _texel_grain
 
     data = _tiny_data()
     regions = _two_regions()
     z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
     bands = {"tone_band": _albedo_tone_bands, "chroma_band": _albedo_chroma_bands,
-             "specular_band": lambda y, r, levels: _specular_bands(y, r, levels, TINY)}[name]
+             "specular_band": lambda y, r, levels: _specular_bands(y, r, levels, TINY),
+             "grain": lambda y, r, levels: _texel_grain(y, r, TINY)}[name]
     measure = lambda y, r: bands(y, r, TrainSettings().band_levels)  # noqa: E731
 
     def run(weight, scale):
@@ -1211,9 +1212,26 @@ def test_tone_chroma_and_specular_band_weights_move_the_fakes_bands(name, tmp_pa
     assert up > off * 1.2 and down < off / 1.2, (up, off, down)
     # the first step's gap is its batch of 8 against 6x the 64 latents' mean: the tiny G's specular varies more
     # between latents (0.77 measured)
-    tol = 0.1 if name == "specular_band" else 0.05
+    tol = 0.1 if name in ("specular_band", "grain") else 0.05
     assert f"{name}_gap" not in l_off[0] and l_up[0][f"{name}_gap"] == pytest.approx(5 / 6, abs=tol)
     _assert_region_term_refusals(name, data, tmp_path)
+
+
+def test_texel_grain_is_the_decoded_albedos_and_speculars_and_blind_to_the_normals():
+    from fitme_cli.reflectance.gan.metrics import region_texel_grain
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _texel_grain
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    m = decode_maps(GanImages.split(x), TINY)
+    want = region_texel_grain(torch.cat([m.albedo.mean(1, keepdim=True), m.specular], 1), regions).flatten(1)
+    torch.testing.assert_close(_texel_grain(x, regions, TINY), want)
+    assert want.shape == (3, 2 * 2)
+    other = x.clone()
+    other[:, 4:] = torch.randn(3, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(_texel_grain(other, regions, TINY), want)
+    assert float(_texel_grain(torch.zeros(1, 7, 16, 16), regions, TINY).abs().max()) == 0.0
 
 
 def test_specular_bands_are_the_decoded_speculars_band_rms_and_blind_to_the_other_maps():
@@ -2497,7 +2515,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -2529,6 +2547,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.chroma_band_weight == 0.5 and lines[-1]["chroma_band_gap"] > 0 and "chroma_band_gap" not in lines[0]
     assert state.train.specular_band_weight == 0.5 and lines[-1]["specular_band_gap"] > 0
     assert "specular_band_gap" not in lines[0]
+    assert state.train.grain_weight == 0.5 and lines[-1]["grain_gap"] > 0 and "grain_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]

@@ -47,7 +47,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
-                "tone_band_weight", "chroma_band_weight", "specular_band_weight", "hairline_share_weight", "hairline_region", "side_regions", "eye_region",
+                "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "hairline_share_weight", "hairline_region", "side_regions", "eye_region",
                 "brow_edge_region", "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels",
                 "patch_r1_gamma", "patch_focus", "bf16")
 # the train flags a --resume may not change: every other one may (the run length, cadence, ADA, rates, EMA, terms)
@@ -150,6 +150,10 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 @click.option("--specular-band-weight", type=click.FloatRange(min=0),
               help="The band term on the specular albedo: each region's RMS of its finest bands to the data's, against "
                    "a specular grain too coarse (uses --band-levels; not in the paper; may change on --resume). [0]")
+@click.option("--grain-weight", type=click.FloatRange(min=0),
+              help="Pull each region's single-texel grain (mean |Laplacian|) of the albedo and the specular to the "
+                   "data's, against grain that sits in the finest band's lower part (not in the paper; may change on "
+                   "--resume). [0]")
 @click.option("--hairline-share-weight", type=click.FloatRange(min=0),
               help="Pull the running mean and mean square of each sample's hair share of the hairline and the scalp behind "
                    "it to the data's, against the same hairline on every face where the data's recedes on some (not in the "
