@@ -162,8 +162,7 @@ def region_texel_grain(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
         raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
                          f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
-    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    lap = p[..., :-2, 1:-1] + p[..., 2:, 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:] - 4 * x
+    lap = _laplacian(x, "replicate")
     return (lap.abs().flatten(2) @ _region_weights(regions, x).T).transpose(1, 2)
 
 
@@ -496,6 +495,13 @@ def crown_flow(lum: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
     return w.unflatten(2, (-1, lum.shape[-1] // 128)).mean(3)
 
 
+def _laplacian(x: torch.Tensor, mode: str) -> torch.Tensor:
+    """(N, C, R, R) -> same: the 5-point Laplacian (4 neighbours minus 4x the texel), borders padded by ``mode``
+    (``F.pad``'s "reflect" or "replicate")."""
+    p = F.pad(x, (1, 1, 1, 1), mode=mode)
+    return p[..., :-2, 1:-1] + p[..., 2:, 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:] - 4 * x
+
+
 def _laplacian_ref(x: torch.Tensor) -> torch.Tensor:
     """Slow twin of ``detail_map``'s Laplacian: (N, C, R, R) -> same, loops over texels, reflected borders."""
     n, c, r, _ = x.shape
@@ -519,9 +525,7 @@ def detail_map(x: torch.Tensor, sigma: float = 2.0) -> torch.Tensor:
         raise ValueError(f"expected float (N, 7, R, R) maps in network space, got {tuple(x.shape)} {x.dtype}")
     if not sigma > 0 or x.shape[-1] <= 6 * sigma:
         raise ValueError(f"expected sigma > 0 and maps wider than 6 sigma, got sigma {sigma} for {tuple(x.shape[2:])}")
-    v = torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 4:6]], 1)
-    p = F.pad(v, (1, 1, 1, 1), mode="reflect")
-    lap = p[..., :-2, 1:-1] + p[..., 2:, 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:] - 4 * v
+    lap = _laplacian(torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 4:6]], 1), "reflect")
     n, c, r, _ = lap.shape
     return gaussian_blur(lap.square().reshape(n * c, 1, r, r), sigma).reshape(n, c, r, r)
 
