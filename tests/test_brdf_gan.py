@@ -982,6 +982,24 @@ def test_region_relief_matches_reference_known_values_gradients_and_bad_input():
         region_relief(lum, nxy, torch.full((r, r), 255, dtype=torch.uint8))
 
 
+def _check_shifted_pull(name: str, measure, regions: torch.Tensor, data: torch.Tensor, run_dir, gap_tol: float) -> None:
+    """An absolute per-region term (``name``): same seed, same steps, G's ``measure`` moves toward a target 0.5 above
+    and one 0.5 below where it starts, more than without the term; the first step's gap is ~0.5 (within ``gap_tol``);
+    and the term's refusals."""
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def run(weight, shift):
+        base, now, out = _pulled(name, weight, measure, lambda b: b + shift, regions, data, z)
+        return float((now - base).mean()), out
+
+    off, l_off = run(0.0, 0.0)
+    up, l_up = run(20.0, 0.5)
+    down, _ = run(20.0, -0.5)
+    assert up > off + 0.05 and down < off - 0.05, (up, off, down)
+    assert f"{name}_gap" not in l_off[0] and l_up[0][f"{name}_gap"] == pytest.approx(0.5, abs=gap_tol)
+    _assert_region_term_refusals(name, data, run_dir)
+
+
 def test_relief_weight_moves_the_fakes_relief(tmp_path):
     """Same seed, same steps: with the relief term G's albedo-normal correlation moves toward a target above and
     one below where it starts; it needs its regions and target, and bad settings are refused."""
@@ -990,19 +1008,56 @@ def test_relief_weight_moves_the_fakes_relief(tmp_path):
     data = _tiny_data()
     regions = _two_regions()
     torch.testing.assert_close(data_relief(data, regions, chunk=4), _albedo_relief(data.float(), regions).mean(0))
-    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
-
-    def run(weight, shift):
-        base, now, out = _pulled("relief", weight, _albedo_relief, lambda b: b + shift, regions, data, z)
-        return float((now - base).mean()), out
-
-    off, l_off = run(0.0, 0.0)
-    up, l_up = run(20.0, 0.5)
-    down, _ = run(20.0, -0.5)
-    assert up > off + 0.05 and down < off - 0.05, (up, off, down)
-    assert "relief_gap" not in l_off[0] and l_up[0]["relief_gap"] == pytest.approx(0.5, abs=0.05)
-    _assert_region_term_refusals("relief", data, tmp_path)
+    _check_shifted_pull("relief", _albedo_relief, regions, data, tmp_path, 0.05)
     assert TrainSettings(relief_weight=1.0, side_regions=True).region_terms  # the relief term counts as one
+
+
+def test_region_specular_link_known_values_gradients_and_bad_input():
+    """A specular that is the bumps' height follows their normals (> 0.5), its negative is the mirror, an unrelated
+    one is ~0; a scale of the normals or an affine change of the specular (network space) changes nothing."""
+    from fitme_cli.reflectance.gan.metrics import region_band_correlation, region_specular_link
+
+    r = 32
+    regions = _two_regions(r)
+    h, nxy = (torch.stack(t) for t in zip(*(_bumps(r, seed) for seed in range(4))))
+    n = torch.cat([nxy, (1 - nxy.square().sum(1, keepdim=True)).sqrt()], 1)
+    up = region_specular_link(h[:, None], n, regions)
+    assert up.shape == (4, 2) and float(up.mean(0).min()) > 0.5, up
+    torch.testing.assert_close(region_specular_link(-h[:, None], n, regions), -up)
+    torch.testing.assert_close(region_specular_link(0.1 * h[:, None] - 3, n * torch.tensor([10.0, 10, 1]).view(1, 3, 1, 1),
+                                                    regions), up, atol=1e-4, rtol=1e-4)
+    other = torch.rand(4, 1, r, r, generator=torch.Generator().manual_seed(5))
+    assert float(region_specular_link(other, n, regions).mean(0).abs().max()) < 0.15
+    a64 = torch.rand(2, r, r, dtype=torch.float64, requires_grad=True)
+    b64 = torch.randn(2, 1, r, r, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b: region_band_correlation(a, b, regions), (a64, b64))
+    with pytest.raises(ValueError, match=r"expected \(N, 1, R, R\) specular and \(N, 3, R, R\) normals"):
+        region_specular_link(h[:, None], nxy, regions)
+    with pytest.raises(ValueError, match=r"expected float \(N, R, R\) and \(N, C, R, R\) maps"):
+        region_band_correlation(h, h, regions)
+
+
+def test_specular_link_weight_moves_the_fakes_link_and_is_blind_to_the_albedo(tmp_path):
+    """The specular-link measure is ``region_specular_link`` of the decoded specular and the normals, blind to the
+    albedo; with the term G's link moves toward a target above and one below where it starts; refusals as every
+    per-region term's."""
+    from fitme_cli.reflectance.gan.metrics import region_specular_link
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _specular_link
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    m = decode_maps(GanImages.split(x), TINY)
+    got = _specular_link(x, regions, TINY)
+    torch.testing.assert_close(got, region_specular_link(m.specular, x[:, 4:7], regions))
+    # the network space's normals are the unit normals' x and y to first order (here tilts up to 0.1: within 0.02)
+    assert float((got - region_specular_link(m.specular, m.normals, regions)).abs().max()) < 0.02
+    other = x.clone()
+    other[:, :3] = torch.randn(3, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(_specular_link(other, regions, TINY), _specular_link(x, regions, TINY))
+    # the first step's gap is its batch of 8 against the 64 latents' mean + 0.5: the tiny G's link varies between
+    # latents (0.59 measured)
+    _check_shifted_pull("specular_link", lambda y, r: _specular_link(y, r, TINY), regions, _tiny_data(), tmp_path, 0.15)
 
 
 def test_mean_map_weight_pulls_a_patch_of_the_mean_maps(tmp_path):
@@ -1188,18 +1243,22 @@ def test_tone_bands_split_the_band_rms_by_the_batchs_tone_halves():
     _check_tone_halved_term(_albedo_tone_bands, "tone_band", x.detach(), regions)
 
 
-@pytest.mark.parametrize("name", ["tone_band", "chroma_band", "specular_band", "grain"])
+@pytest.mark.parametrize("name", ["tone_band", "chroma_band", "specular_band", "grain", "lattice", "chroma_grain"])
 def test_tone_chroma_and_specular_band_weights_move_the_fakes_bands(name, tmp_path):
     """Pulled up, the band RMS (both halves' of the log albedo or of its log chromaticity, or the specular's) or the
     texel grain grows, pulled down it shrinks; it needs its regions and target, and bad settings are refused."""
-    from fitme_cli.reflectance.gan.train import _albedo_chroma_bands, _albedo_tone_bands, _specular_bands, _texel_grain
+    from fitme_cli.reflectance.gan.train import (_albedo_chroma_bands, _albedo_tone_bands, _chroma_grain, _specular_bands,
+                                                 _texel_grain)
+    from fitme_cli.reflectance.gan.metrics import texel_lattice
 
     data = _tiny_data()
     regions = _two_regions()
     z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
     bands = {"tone_band": _albedo_tone_bands, "chroma_band": _albedo_chroma_bands,
              "specular_band": lambda y, r, levels: _specular_bands(y, r, levels, TINY),
-             "grain": lambda y, r, levels: _texel_grain(y, r, TINY)}[name]
+             "grain": lambda y, r, levels: _texel_grain(y, r, TINY),
+             "lattice": lambda y, r, levels: texel_lattice(y).flatten(1),
+             "chroma_grain": lambda y, r, levels: _chroma_grain(y, r)}[name]
     measure = lambda y, r: bands(y, r, TrainSettings().band_levels)  # noqa: E731
 
     def run(weight, scale):
@@ -1212,9 +1271,81 @@ def test_tone_chroma_and_specular_band_weights_move_the_fakes_bands(name, tmp_pa
     assert up > off * 1.2 and down < off / 1.2, (up, off, down)
     # the first step's gap is its batch of 8 against 6x the 64 latents' mean: the tiny G's specular varies more
     # between latents (0.77 measured)
-    tol = 0.1 if name in ("specular_band", "grain") else 0.05
+    tol = 0.1 if name in ("specular_band", "grain", "chroma_grain") else 0.05
     assert f"{name}_gap" not in l_off[0] and l_up[0][f"{name}_gap"] == pytest.approx(5 / 6, abs=tol)
     _assert_region_term_refusals(name, data, tmp_path)
+
+
+def test_chroma_grain_is_the_log_chromas_texel_grain_and_blind_to_brightness_and_the_other_maps():
+    """The colour-grain measure is ``region_texel_grain`` of the decoded albedo's ``log_chroma``: a grey albedo has
+    none whatever its grain, and a brighter albedo (all three channels scaled) or other specular and normals leave
+    it as it is."""
+    from fitme_cli.reflectance.gan.metrics import log_chroma, region_texel_grain
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _chroma_grain
+
+    regions = _two_regions()
+    g = torch.Generator().manual_seed(0)
+    albedo = 0.05 + 0.3 * torch.rand(3, 3, 16, 16, generator=g)
+    maps = lambda a, seed: encode_maps(ReflectanceMaps(  # noqa: E731
+        a, 0.05 + 0.2 * torch.rand(3, 1, 16, 16, generator=torch.Generator().manual_seed(seed)),
+        torch.nn.functional.normalize(torch.randn(3, 3, 16, 16, generator=torch.Generator().manual_seed(seed)) * 0.1
+                                      + torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1), dim=1)), TINY).cat()
+    x = maps(albedo, 1)
+    want = region_texel_grain(log_chroma(decode_maps(GanImages.split(x), TINY).albedo), regions).flatten(1)
+    got = _chroma_grain(x, regions)
+    torch.testing.assert_close(got, want)
+    assert got.shape == (3, 2 * 2) and float(got.min()) > 0
+    torch.testing.assert_close(_chroma_grain(maps(albedo, 2), regions), got)  # other specular and normals
+    torch.testing.assert_close(_chroma_grain(maps(albedo * 1.5, 1), regions), got, rtol=2e-3, atol=2e-4)
+    grey = maps(albedo[:, :1].expand(3, 3, 16, 16), 1)
+    assert float(_chroma_grain(grey, regions).abs().max()) < 1e-4
+
+
+def _texel_lattice_ref(x: torch.Tensor) -> torch.Tensor:
+    """Slow twin of ``metrics.texel_lattice``: loops over the steps of one row / column direction at a time."""
+    n, c, r, _ = x.shape
+    e = 1e-6
+    out = torch.empty(n, c, 6, dtype=x.dtype)
+    for b in range(n):
+        for ch in range(c):
+            m = x[b, ch]
+            for axis, grid in ((0, m), (1, m.T)):
+                steps = [float((grid[i + 1] - grid[i]).abs().mean()) for i in range(r - 1)]
+                even = sum(steps[0::2]) / len(steps[0::2])
+                odd = sum(steps[1::2]) / len(steps[1::2])
+                inner = sum(steps[2:-2]) / len(steps[2:-2]) + e
+                out[b, ch, axis] = (even + e) / (odd + e)
+                out[b, ch, 2 + 2 * axis] = (steps[0] + e) / inner
+                out[b, ch, 3 + 2 * axis] = (steps[-1] + e) / inner
+    return out
+
+
+def test_texel_lattice_known_values_reference_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import LATTICE_PARTS, texel_lattice
+
+    r = 16
+    i = torch.arange(r, dtype=torch.float64)
+    # rows climbing by 2 then 1 (an upsampling's pairs): parity 2; columns flat: 1; a smooth ramp's edges: 1
+    pairs = torch.cumsum(torch.tensor([0.0] + [2.0 if k % 2 == 0 else 1.0 for k in range(r - 1)], dtype=torch.float64), 0)
+    x = torch.stack([pairs[:, None].expand(r, r), i[None, :].expand(r, r) * 0.5])[None]
+    got = texel_lattice(x)
+    assert got.shape == (1, 2, len(LATTICE_PARTS))
+    inner = sum([2.0 if k % 2 == 0 else 1.0 for k in range(2, r - 3)]) / (r - 5)
+    torch.testing.assert_close(got[0, 0], torch.tensor([2.0, 1.0, 2.0 / inner, 2.0 / inner, 1.0, 1.0], dtype=torch.float64), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(got[0, 1], torch.tensor([1.0, 1.0, 1.0, 1.0, 1.0, 1.0], dtype=torch.float64), atol=1e-5, rtol=1e-5)
+    # a seam: the left column 3 steps off a ramp of unit steps
+    seam = (i[None, :] + 3.0 * (i[None, :] > 0)).expand(r, r)[None, None].clone()
+    assert float(texel_lattice(seam)[0, 0, 4]) == pytest.approx(4.0, rel=1e-5)
+    assert float(texel_lattice(seam)[0, 0, 5]) == pytest.approx(1.0, rel=1e-5)
+    # a flat map is 1 everywhere, not 0 / 0
+    torch.testing.assert_close(texel_lattice(torch.zeros(1, 1, 8, 8)), torch.ones(1, 1, 6))
+    rnd = torch.randn(2, 3, 12, 12, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    torch.testing.assert_close(texel_lattice(rnd), _texel_lattice_ref(rnd))
+    assert torch.autograd.gradcheck(texel_lattice, (rnd[:1, :1].clone().requires_grad_(),))
+    for bad in (torch.zeros(1, 8, 8), torch.zeros(1, 1, 8, 9), torch.zeros(1, 1, 5, 5), torch.zeros(1, 1, 8, 8, dtype=torch.long)):
+        with pytest.raises(ValueError, match="expected float"):
+            texel_lattice(bad)
 
 
 def test_texel_grain_is_the_decoded_albedos_and_speculars_and_blind_to_the_normals():
@@ -2515,7 +2646,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -2548,6 +2679,10 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.specular_band_weight == 0.5 and lines[-1]["specular_band_gap"] > 0
     assert "specular_band_gap" not in lines[0]
     assert state.train.grain_weight == 0.5 and lines[-1]["grain_gap"] > 0 and "grain_gap" not in lines[0]
+    assert state.train.lattice_weight == 0.5 and lines[-1]["lattice_gap"] > 0 and "lattice_gap" not in lines[0]
+    assert state.train.chroma_grain_weight == 0.5 and lines[-1]["chroma_grain_gap"] > 0 and "chroma_grain_gap" not in lines[0]
+    assert state.train.specular_link_weight == 5.0 and lines[-1]["specular_link_gap"] > 0
+    assert "specular_link_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -2711,7 +2846,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_band_ratio_by_side", "albedo_normal_relief_by_region", "albedo_moment_ratio_by_region",
                       "albedo_band_ratio_features", "beard_hair_share", "crown_flow",
                       "mean_map_abs_diff", "detail_map_log2_ratio", "albedo_chroma_band_ratio_by_region",
-                      "specular_band_ratio_by_region", "texel_grain_ratio_by_region"}
+                      "specular_band_ratio_by_region", "texel_grain_ratio_by_region", "texel_lattice",
+                      "chroma_texel_grain_ratio_by_region", "specular_link_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -2753,6 +2889,17 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     grain = m["texel_grain_ratio_by_region"]  # albedo, specular, normals x, y
     assert set(grain) == set(m["albedo_band_ratio_by_region"])
     assert all(len(v) == 4 and all(np.isfinite(b) and b >= 0 for b in v) for v in grain.values())
+    chroma_grain = m["chroma_texel_grain_ratio_by_region"]  # red-green, yellow-blue
+    assert set(chroma_grain) == set(m["albedo_band_ratio_by_region"])
+    assert all(len(v) == 2 and all(np.isfinite(b) and b >= 0 for b in v) for v in chroma_grain.values())
+    link = m["specular_link_by_region"]
+    assert set(link) == set(m["albedo_band_ratio_by_region"])
+    assert all(list(v) == ["data", "gan"] and all(-1 <= c <= 1 for c in v.values()) for v in link.values())
+    lattice = m["texel_lattice"]  # per channel and part; the data's parities are near 1 (its maps are smooth at 64^2)
+    assert list(lattice) == ["albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"]
+    assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())
+    assert all(np.isfinite(p[k]) and p[k] > 0 for v in lattice.values() for p in v.values() for k in ("gan", "data"))
+    assert all(0.8 < v[p]["data"] < 1.25 for v in list(lattice.values())[:3] for p in ("row_parity", "column_parity"))
     assert all(len(v) == 2 and all(0 <= c <= 1 for c in v) for r in coh.values() for v in r.values())
     spec = m["albedo_spectrum_tv_by_region"]  # only the regions with a whole 16^2 window at 64^2
     assert spec and set(spec) < set(coh) and "lips" not in spec

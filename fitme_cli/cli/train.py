@@ -47,7 +47,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
-                "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "hairline_share_weight", "hairline_region", "side_regions", "eye_region",
+                "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "lattice_weight", "chroma_grain_weight", "specular_link_weight", "hairline_share_weight", "hairline_region", "side_regions", "eye_region",
                 "brow_edge_region", "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels",
                 "patch_r1_gamma", "patch_focus", "bf16")
 # the train flags a --resume may not change: every other one may (the run length, cadence, ADA, rates, EMA, terms)
@@ -153,6 +153,17 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 @click.option("--grain-weight", type=click.FloatRange(min=0),
               help="Pull each region's single-texel grain (mean |Laplacian|) of the albedo and the specular to the "
                    "data's, against grain that sits in the finest band's lower part (not in the paper; may change on "
+                   "--resume). [0]")
+@click.option("--lattice-weight", type=click.FloatRange(min=0),
+              help="Pull each channel's texel-lattice ratios (rows and columns alternating, the border rows' and columns' "
+                   "steps against the inner ones') to the data's, against an upsampling's texel pairs and a seam at the "
+                   "borders (not in the paper; may change on --resume). [0]")
+@click.option("--chroma-grain-weight", type=click.FloatRange(min=0),
+              help="Pull each region's single-texel grain of the albedo's log chromaticity to the data's, against colour "
+                   "fringes and coloured rim texels (not in the paper; may change on --resume). [0]")
+@click.option("--specular-link-weight", type=click.FloatRange(min=0),
+              help="Pull each region's correlation of the specular's finest band with the normals' divergence to the "
+                   "data's, against a specular whose pores do not follow the normals (not in the paper; may change on "
                    "--resume). [0]")
 @click.option("--hairline-share-weight", type=click.FloatRange(min=0),
               help="Pull the running mean and mean square of each sample's hair share of the hairline and the scalp behind "

@@ -45,7 +45,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
-           "log_chroma", "region_texel_grain"]
+           "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
+           "region_specular_link"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -164,6 +165,32 @@ def region_texel_grain(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
                          f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
     lap = _laplacian(x, "replicate")
     return (lap.abs().flatten(2) @ _region_weights(regions, x).T).transpose(1, 2)
+
+
+# ``texel_lattice``'s entries, in order
+LATTICE_PARTS = ("row_parity", "column_parity", "top", "bottom", "left", "right")
+_LATTICE_EPS = 1e-6  # keeps a flat map's 0 / 0 at 1
+
+
+def texel_lattice(x: torch.Tensor) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units, R >= 6 -> (N, C, 6) same dtype: per sample and channel, how the texel lattice
+    shows (``LATTICE_PARTS``). Parities: the mean |step| between rows (columns) 2i and 2i + 1 over that between 2i + 1
+    and 2i + 2; an upsampling's texel pairs make it < 1. Edges: the mean |step| between the border row (column) and
+    the next over the mean |step| between the rows (columns) at least 2 texels inside; a zero-padded convolution's
+    border makes it differ from the data's. The data's parities are 1.00 (0.975-1.023 per sample, network space,
+    256^2), its edges per channel (docs/brdf_gan.md, "The lattice"). Differentiable almost everywhere."""
+    if x.ndim != 4 or not x.is_floating_point() or x.shape[2] != x.shape[3] or x.shape[2] < 6:
+        raise ValueError(f"expected float (N, C, R, R) maps with R >= 6, got {tuple(x.shape)} {x.dtype}")
+    rows = (x[:, :, 1:] - x[:, :, :-1]).abs().mean(3)  # (N, C, R - 1): step i is between rows i and i + 1
+    cols = (x[:, :, :, 1:] - x[:, :, :, :-1]).abs().mean(2)
+    e = _LATTICE_EPS
+
+    def parity(steps):
+        return (steps[..., 0::2].mean(-1) + e) / (steps[..., 1::2].mean(-1) + e)
+
+    inner_r, inner_c = rows[..., 2:-2].mean(-1) + e, cols[..., 2:-2].mean(-1) + e
+    return torch.stack([parity(rows), parity(cols), (rows[..., 0] + e) / inner_r, (rows[..., -1] + e) / inner_r,
+                        (cols[..., 0] + e) / inner_c, (cols[..., -1] + e) / inner_c], -1)
 
 
 def region_moments(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
@@ -543,16 +570,40 @@ def region_relief(lum: torch.Tensor, normals_xy: torch.Tensor, regions: torch.Te
         raise ValueError(f"expected float (N, R, R) luminance, (N, 2, R, R) normals and (R, R) uint8 regions matching "
                          f"them, got {tuple(lum.shape)} {lum.dtype}, {tuple(normals_xy.shape)} and "
                          f"{tuple(regions.shape)} {regions.dtype}")
-    w = _region_weights(regions, lum).T  # (R*R, k)
-    band = _bandpass(torch.cat([lum[:, None], normals_xy.to(lum)], 1), 1)[0].flatten(2)  # (N, 3, R*R)
-    mean = band @ w  # (N, 3, k)
-    var = (band.square() @ w - mean.square()).clamp_min(0)  # (N, 3, k)
-    cov = (band[:, :1] * band[:, 1:]) @ w - mean[:, :1] * mean[:, 1:]  # (N, 2, k): lum with x, with y
+    return region_band_correlation(lum, normals_xy.to(lum), regions)
+
+
+def region_band_correlation(a: torch.Tensor, b: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """a: (N, R, R), b: (N, C, R, R), any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, C) a's dtype in
+    [-1, 1]: per sample and region of ``region_labels``, the correlation of a's finest Laplacian band (``_bandpass``:
+    1-2 texels) with each channel of b's. A flat region gives 0. Differentiable."""
+    if (a.ndim != 3 or b.ndim != 4 or b.shape[0] != a.shape[0] or b.shape[2:] != a.shape[1:] or not a.is_floating_point()
+            or regions.shape != a.shape[1:] or regions.dtype != torch.uint8):
+        raise ValueError(f"expected float (N, R, R) and (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(a.shape)} {a.dtype}, {tuple(b.shape)} and {tuple(regions.shape)} {regions.dtype}")
+    w = _region_weights(regions, a).T  # (R*R, k)
+    band = _bandpass(torch.cat([a[:, None], b.to(a)], 1), 1)[0].flatten(2)  # (N, 1 + C, R*R)
+    mean = band @ w  # (N, 1 + C, k)
+    var = (band.square() @ w - mean.square()).clamp_min(0)
+    cov = (band[:, :1] * band[:, 1:]) @ w - mean[:, :1] * mean[:, 1:]  # (N, C, k)
     both = var[:, :1] * var[:, 1:]
     # cov / sqrt(both) without the root's infinite gradient at a flat region (as ``region_band_energy``)
     flat = both <= 0
     corr = cov / torch.where(flat, torch.ones_like(both), both).sqrt() * ~flat
     return corr.transpose(1, 2)
+
+
+def region_specular_link(specular: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """specular: (N, 1, R, R), any affine units (linear A_S or network space); normals: (N, 3, R, R) (unit, or network
+    space: only x and y are read, and a scale does not change a correlation); regions: (R, R) uint8 -> (N, k) in
+    [-1, 1]: per sample and region, ``region_band_correlation`` of the specular with the normals' divergence (bumps
+    > 0). In the data the specular's pores and strands follow the normals' relief (96 maps: skin 0.46, forehead 0.63,
+    nose 0.67, neck 0.64, scalp 0.88); at 275.01 kimg G_ema's was 0.24 / 0.47 / 0.46 / 0.32 / 0.79, the 275.01 judge's
+    measured tell (docs/brdf_gan.md, "The specular follows the normals")."""
+    if specular.ndim != 4 or specular.shape[1] != 1 or normals.shape != (specular.shape[0], 3, *specular.shape[2:]):
+        raise ValueError(f"expected (N, 1, R, R) specular and (N, 3, R, R) normals, got {tuple(specular.shape)} and "
+                         f"{tuple(normals.shape)}")
+    return region_band_correlation(specular[:, 0], _divergence(normals)[:, None], regions)[..., 0]
 
 
 def region_coherence(img: torch.Tensor, regions: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:
