@@ -119,10 +119,11 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         mo.append(region_moments(x[:, :3], features))
         fb.append(region_band_energy(x[:, :3], features).mean(3))
         bs.append(hair_share(x[:, :3], beard))
-        ch.append(region_band_energy(log_chroma(x[:, :3]), regions).mean(3))
+        chroma = log_chroma(x[:, :3])
+        ch.append(region_band_energy(chroma, regions).mean(3))
         sb.append(region_band_energy(x[:, 3:4], regions)[..., 0])
         tg.append(region_texel_grain(torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 3:6]], 1), regions))
-        cg.append(region_texel_grain(log_chroma(x[:, :3]), regions))
+        cg.append(region_texel_grain(chroma, regions))
         lt.append(texel_lattice(net))
         sl.append(region_specular_link(x[:, 3:4], x[:, 4:7], regions))
         if x.shape[-1] % 128 == 0:  # the crown window's bins are R / 128 texels
