@@ -47,9 +47,11 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
                 "coherence_weight", "band_weight", "band_levels", "spectrum_weight", "relief_weight", "colour_weight",
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
-                "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "lattice_weight", "chroma_grain_weight", "specular_link_weight", "hairline_share_weight", "hairline_region", "side_regions", "eye_region",
-                "brow_edge_region", "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels",
-                "patch_r1_gamma", "patch_focus", "bf16")
+                "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "lattice_weight",
+                "chroma_grain_weight", "specular_link_weight", "specular_spectrum_weight", "texel_tail_weight",
+                "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
+                "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
+                "patch_focus", "gamut_weight", "bf16")
 # the train flags a --resume may not change: every other one may (the run length, cadence, ADA, rates, EMA, terms)
 _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 
@@ -165,6 +167,17 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="Pull each region's correlation of the specular's finest band with the normals' divergence to the "
                    "data's, against a specular whose pores do not follow the normals (not in the paper; may change on "
                    "--resume). [0]")
+@click.option("--specular-spectrum-weight", type=click.FloatRange(min=0),
+              help="Pull the running per-region spectrum of the finest band of G's specular albedo to the data's, "
+                   "against a cross-hatch where the data has sparse pore dots (not in the paper; may change on "
+                   "--resume). [0]")
+@click.option("--texel-tail-weight", type=click.FloatRange(min=0),
+              help="Pull each region's share of single-texel pits and bumps in G's albedo and specular to the data's: "
+                   "crisp dark dots (pores, moles) against detail that is as often a bright bump (not in the paper; "
+                   "may change on --resume). [0]")
+@click.option("--gamut-weight", type=click.FloatRange(min=0),
+              help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
+                   "in hair), which D did not learn (not in the paper; may change on --resume). [0]")
 @click.option("--hairline-share-weight", type=click.FloatRange(min=0),
               help="Pull the running mean and mean square of each sample's hair share of the hairline and the scalp behind "
                    "it to the data's, against the same hairline on every face where the data's recedes on some (not in the "

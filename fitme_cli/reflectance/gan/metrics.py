@@ -46,7 +46,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
            "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
-           "region_specular_link"]
+           "region_specular_link", "region_texel_tails", "gamut_excess"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -165,6 +165,37 @@ def region_texel_grain(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
                          f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
     lap = _laplacian(x, "replicate")
     return (lap.abs().flatten(2) @ _region_weights(regions, x).T).transpose(1, 2)
+
+
+def region_texel_tails(x: torch.Tensor, regions: torch.Tensor, k: float = 3.0, soft: float = 0.25) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k', C, 2) same dtype in
+    [0, 1]: per sample, region of ``region_labels`` and channel, the share of texels whose 4-neighbour Laplacian (edges
+    replicated) lies more than ``k`` of the region's standard deviations above the region's mean (a pit: a texel darker
+    than its neighbours) and more than ``k`` below (a bump), each texel counted by sigmoid((|z| - k) / soft), so
+    differentiable. A flat region gives 0. Invariant to a channel's scale and offset.
+
+    Every other grain measure (band RMS, spectra, ``region_texel_grain``) is blind to the detail's sign. The data's
+    specular has pits and few bumps (96 maps, hard shares at 3 sd, per mille: skin 10.4 / 2.0, forehead 16.2 / 1.8,
+    nose 5.6 / 0.0, neck 7.1 / 0.6; two halves within 0.5), G_ema's at 280.01 kimg not (7.6 / 5.4, 4.5 / 3.5, 1.1 /
+    3.0, 3.2 / 3.3): the judges' missing crisp pore dots. Shares, not the skewness: a skewness term was met within 0.4
+    kimg by a few deep pits (the specular's kurtosis 7 -> 30 on the skin) while D's loss fell to 0.02
+    (docs/brdf_gan.md)."""
+    if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    if not (k > 0 and soft > 0):
+        raise ValueError(f"expected k > 0 and soft > 0, got {k} and {soft}")
+    lap = _laplacian(x, "replicate").flatten(2)  # (N, C, R*R)
+    w = _region_weights(regions, x).T  # (R*R, k')
+    mean = lap @ w
+    var = lap.square() @ w - mean.square()
+    flat = var <= 1e-10 * (lap.square() @ w).clamp_min(torch.finfo(x.dtype).tiny)  # round-off of a flat region
+    sd = torch.where(flat, torch.ones_like(var), var).sqrt()
+    # each texel's own region (unmapped texels weigh 0 in w, so the one they get does not matter)
+    own = _region_masks(regions).flatten(1).to(torch.uint8).argmax(0)
+    z = (lap - mean[..., own]) / sd[..., own]
+    shares = torch.stack([torch.sigmoid((z - k) / soft) @ w, torch.sigmoid((-z - k) / soft) @ w], -1)  # (N, C, k', 2)
+    return (shares * ~flat[..., None]).transpose(1, 2)
 
 
 # ``texel_lattice``'s entries, in order
@@ -624,6 +655,19 @@ def strand_coherence(phys: torch.Tensor, regions: torch.Tensor, sigma: float = 1
         raise ValueError(f"expected (N, 7, R, R) maps and (R, R) regions, got {tuple(phys.shape)} and {tuple(regions.shape)}")
     # every sample has as many texels in a region, so the mean of the samples' region means is the region's
     return torch.stack([region_coherence(m, regions, sigma).double().mean(0) for m in (phys[:, :3].mean(1), phys[:, 4])], 1).numpy()
+
+
+def gamut_excess(albedo: torch.Tensor) -> torch.Tensor:
+    """(N, 3, H, W) linear albedo -> (N, 2, H, W) >= 0: per texel, how far the albedo leaves the data's hue gamut
+    r >= g >= b: log g - log r and log b - log g where positive (each floored at 1e-3), else 0. Every texel of the data
+    is inside (512 maps: min r / g and g / b exactly 1, at the grey eyeballs); G_ema's at 282 kimg were not: 0.9 % of
+    texels greener than red and 0.8 % bluer than green, the judges' "greenish skin" and "blue casts in the beards"
+    (docs/brdf_gan.md). ADA's colour jitter keeps the order (it scales saturation and contrast and shifts all three
+    channels alike), yet D had not learned it in 280 kimg. Differentiable almost everywhere."""
+    if albedo.ndim != 4 or albedo.shape[1] != 3 or not albedo.is_floating_point():
+        raise ValueError(f"gamut_excess: expected float (N, 3, H, W) linear albedo, got {tuple(albedo.shape)} {albedo.dtype}")
+    r, g, b = albedo.clamp_min(1e-3).log().unbind(1)
+    return torch.stack([F.relu(g - r), F.relu(b - g)], 1)
 
 
 def log_chroma(albedo: torch.Tensor) -> torch.Tensor:

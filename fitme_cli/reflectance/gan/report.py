@@ -17,11 +17,11 @@ import torch
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, brow_edges, eye_openings,
                    hairline_zones, load_dataset, load_regions, split_sides)
 from .latents import sample_z
-from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_region, feature_parts, frechet_distance, hair_share,
-                      interpolation_smoothness, log_chroma, modality_consistency, reflectance_features, region_albedo,
+from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_region, feature_parts, frechet_distance, gamut_excess,
+                      hair_share, interpolation_smoothness, log_chroma, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief, region_texel_grain,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence, texel_lattice, LATTICE_PARTS,
-                      region_specular_link)
+                      region_specular_link, region_texel_tails)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -92,6 +92,23 @@ class _Side:
     chroma_grain: torch.Tensor  # (k, 2) ``metrics.region_texel_grain`` of the albedo's ``metrics.log_chroma``
     specular_link: torch.Tensor  # (k,) ``metrics.region_specular_link``
     lattice: torch.Tensor  # (7, 6) ``metrics.texel_lattice`` in network space, as the lattice term measures it
+    specular_spectra: torch.Tensor  # (N, k, 16, 9) ``metrics.region_spectrum`` of the linear specular albedo
+    texel_tails: torch.Tensor  # (k, 2, 2) ``metrics.region_texel_tails`` (pits, bumps) of albedo (mean), specular
+    gamut: torch.Tensor  # (2,) the share of texels outside the hue gamut (``metrics.gamut_excess``): g > r, b > g
+
+
+def _spectrum_rows(gan: torch.Tensor, real: torch.Tensor, half: int, regions: torch.Tensor) -> dict[str, dict]:
+    """(N, k, P, P/2+1) ``region_spectrum`` of G's samples and the data's -> per region with whole windows, the
+    spectra's total variation distance, G against the held-out half of the data and half against half, and the
+    frequency (cycles per texel) where G's spectrum most exceeds the data's."""
+    sa, sb = real[:half], real[half:]
+    sg = gan[: len(sb)]
+    tv_gan, tv_split, peaks = spectrum_distance(sg, sb), spectrum_distance(sa, sb), spectrum_excess_peak(sg, sb)
+    return {_region_name(lab): {"gan_vs_heldout_half": round(float(tv_gan[j]), 3),
+                                "half_vs_half": round(float(tv_split[j]), 3),
+                                "excess_peak_cycles_per_texel": [round(peaks[j][0], 4), round(peaks[j][1], 4)],
+                                "excess_share": round(peaks[j][2], 4)}
+            for j, lab in enumerate(region_labels(regions)) if bool(sb[:, j].sum() > 0)}
 
 
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
@@ -100,7 +117,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     """One side of the comparison (generated when src is None); ``features``: the regions with the eye openings and
     brow edges carved in (``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``); ``beard``: ``data.beard_zone``."""
     st = _Stats(mapped)
-    fs, cm, sp, hz, sd, rl, mo, fb, bs, cr, ch, sb, tg, cg, sl, lt = ([] for _ in range(16))
+    fs, cm, sp, hz, sd, rl, mo, fb, bs, cr, ch, sb, tg, cg, sl, lt, ss, sk, ga = ([] for _ in range(19))
     sums, dsums, counts, seen = [0.0, 0.0], [0.0, 0.0], [0, 0], 0
     for net, x in _batches(G, src, n, seed, truncation_psi=truncation_psi):
         st.add(x)
@@ -122,10 +139,14 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         chroma = log_chroma(x[:, :3])
         ch.append(region_band_energy(chroma, regions).mean(3))
         sb.append(region_band_energy(x[:, 3:4], regions)[..., 0])
-        tg.append(region_texel_grain(torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 3:6]], 1), regions))
+        grain_maps = torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 3:6]], 1)
+        tg.append(region_texel_grain(grain_maps, regions))
+        sk.append(region_texel_tails(grain_maps[:, :2], regions))
+        ga.append((gamut_excess(x[:, :3]) > 0).double().mean((2, 3)))
         cg.append(region_texel_grain(chroma, regions))
         lt.append(texel_lattice(net))
         sl.append(region_specular_link(x[:, 3:4], x[:, 4:7], regions))
+        ss.append(region_spectrum(x[:, 3], regions))
         if x.shape[-1] % 128 == 0:  # the crown window's bins are R / 128 texels
             cr.append(crown_flow(x[:, :3].mean(1)))
         if sum(len(c) for c in cm) < 200:
@@ -137,7 +158,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
                  torch.cat(cr) if cr else None, (sums[0] / max(counts[0], 1), sums[1] / max(counts[1], 1)),
                  (dsums[0] / max(counts[0], 1), dsums[1] / max(counts[1], 1)), torch.cat(ch).mean(0),
                  torch.cat(sb).mean(0), torch.cat(tg).mean(0), torch.cat(cg).mean(0),
-                 torch.cat(sl).mean(0), torch.cat(lt).mean(0))
+                 torch.cat(sl).mean(0), torch.cat(lt).mean(0), torch.cat(ss),
+                 torch.cat(sk).mean(0), torch.cat(ga).mean(0))
 
 
 def evaluate(G: Generator, data: torch.Tensor, regions: torch.Tensor, n_fake: int = 500, n_real: int = 1000,
@@ -211,17 +233,8 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
     # where the albedo's grain is too faint or too strong: per region and band (finest first), G's mean RMS
     # over the data's (mean of r, g, b)
     band_ratio = region_albedo_bands(gan.features).mean(0) / np.maximum(region_albedo_bands(real.features).mean(0), 1e-12)
-    # where in frequency the albedo's finest grain sits (a lattice is a peak): per region with whole 16^2
-    # windows, the spectra's total variation distance, G against the held-out half and half against half,
-    # and the frequency (cycles per texel) where G's spectrum most exceeds the data's
-    sa, sb = real.spectra[:half], real.spectra[half:]
-    sg = gan.spectra[: len(sb)]
-    tv_gan, tv_split, peaks = spectrum_distance(sg, sb), spectrum_distance(sa, sb), spectrum_excess_peak(sg, sb)
-    spectrum = {_region_name(lab): {"gan_vs_heldout_half": round(float(tv_gan[j]), 3),
-                                    "half_vs_half": round(float(tv_split[j]), 3),
-                                    "excess_peak_cycles_per_texel": [round(peaks[j][0], 4), round(peaks[j][1], 4)],
-                                    "excess_share": round(peaks[j][2], 4)}
-                for j, lab in enumerate(region_labels(regions)) if bool(sb[:, j].sum() > 0)}
+    # where in frequency the albedo's finest grain sits (a lattice is a peak)
+    spectrum = _spectrum_rows(gan.spectra, real.spectra, half, regions)
     with torch.no_grad():
         ratios = [interpolation_smoothness(G.synthesis(w, noise_mode="const").cat())
                   for w in _walks(G, 8, 16, seed + 1, truncation_psi)]
@@ -235,6 +248,8 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "albedo_band_ratio_by_region": {_region_name(lab): [round(float(v), 3) for v in band_ratio[j]]
                                         for j, lab in enumerate(region_labels(regions))},
         "albedo_spectrum_tv_by_region": spectrum,
+        # the same for the specular albedo: its "cross-hatch" at 280.01 kimg (docs/brdf_gan.md)
+        "specular_spectrum_tv_by_region": _spectrum_rows(gan.specular_spectra, real.specular_spectra, half, regions),
         # a soft hairline told G's maps from the data's (docs/brdf_gan.md): per zone and band, G's RMS over the data's
         "albedo_band_ratio_hairline": {zone: _ratios(gan.hairline[j], real.hairline[j])
                                        for j, zone in enumerate(("face_side", "hairline", "scalp_side"))},
@@ -265,6 +280,16 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # shown specular's |Laplacian| on the shoulders): per region, G's mean |Laplacian| over the data's, of the
         # albedo (mean of r, g, b), the specular, the normals' x and y (``metrics.region_texel_grain``)
         "texel_grain_ratio_by_region": _ratios_by_region(gan.texel_grain, real.texel_grain, regions),
+        # the sign of the single-texel detail: per region, of albedo and specular, the soft shares (per mille) of pits
+        # (darker than the neighbours by > 3 sd) and bumps
+        "texel_tails_permille_by_region": {
+            _region_name(lab): {side: {ch: [round(1000 * float(v), 2) for v in m.texel_tails[j, c]]
+                                       for c, ch in enumerate(("albedo", "specular"))}
+                                for side, m in (("data", real), ("gan", gan))}
+            for j, lab in enumerate(region_labels(regions))},
+        # texels outside the data's hue gamut r >= g >= b, percent: greener than red, bluer than green
+        "albedo_gamut_violation_percent": {side: [round(100 * float(v), 3) for v in m.gamut]
+                                           for side, m in (("data", real), ("gan", gan))},
         # a specular whose pores do not follow the normals (the 275.01 kimg judge's measured tell): per region, the mean
         # correlation of the specular's finest band with the normals' divergence (``metrics.region_specular_link``)
         "specular_link_by_region": {_region_name(lab): {"data": round(float(real.specular_link[j]), 3),
