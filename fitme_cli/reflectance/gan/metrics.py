@@ -187,9 +187,9 @@ def region_texel_tails(x: torch.Tensor, regions: torch.Tensor, k: float = 3.0, s
         raise ValueError(f"expected k > 0 and soft > 0, got {k} and {soft}")
     lap = _laplacian(x, "replicate").flatten(2)  # (N, C, R*R)
     w = _region_weights(regions, x).T  # (R*R, k')
-    mean = lap @ w
-    var = lap.square() @ w - mean.square()
-    flat = var <= 1e-10 * (lap.square() @ w).clamp_min(torch.finfo(x.dtype).tiny)  # round-off of a flat region
+    mean, square = lap @ w, lap.square() @ w
+    var = square - mean.square()
+    flat = var <= 1e-10 * square.clamp_min(torch.finfo(x.dtype).tiny)  # round-off of a flat region
     sd = torch.where(flat, torch.ones_like(var), var).sqrt()
     # each texel's own region (unmapped texels weigh 0 in w, so the one they get does not matter)
     own = _region_masks(regions).flatten(1).to(torch.uint8).argmax(0)

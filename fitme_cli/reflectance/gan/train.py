@@ -825,19 +825,23 @@ def _specular_bands(x: torch.Tensor, regions: torch.Tensor, levels: int, s: GanS
     return region_band_energy(decode_specular(x[:, 3:4], s), regions, levels).flatten(1)
 
 
+def _luminance_and_specular(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2, R, R): the linear albedo's mean of r, g, b and the linear specular albedo
+    (``s``: its decoding), the maps the grain and texel-tail terms measure."""
+    return torch.cat([decode_albedo(x[:, :3]).mean(1, keepdim=True), decode_specular(x[:, 3:4], s)], 1)
+
+
 def _texel_grain(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, k * 2): per region, ``metrics.region_texel_grain`` of the linear albedo (mean of
     r, g, b) and of the linear specular albedo, the grain term's measure. ``s``: the specular's decoding."""
-    maps = torch.cat([decode_albedo(x[:, :3]).mean(1, keepdim=True), decode_specular(x[:, 3:4], s)], 1)
-    return region_texel_grain(maps, regions).flatten(1)
+    return region_texel_grain(_luminance_and_specular(x, s), regions).flatten(1)
 
 
 def _texel_tails(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, k * 4): per region, ``metrics.region_texel_tails`` (pits, bumps) of the linear
     albedo (mean of r, g, b) and of the linear specular albedo, the texel-tail term's measure. ``s``: the specular's
     decoding."""
-    maps = torch.cat([decode_albedo(x[:, :3]).mean(1, keepdim=True), decode_specular(x[:, 3:4], s)], 1)
-    return region_texel_tails(maps, regions).flatten(1)
+    return region_texel_tails(_luminance_and_specular(x, s), regions).flatten(1)
 
 
 _TAIL_FLOOR = 0.002  # the tail term's scale floor: 2 per mille, against a near-0 target (the data's nose has no bumps)
