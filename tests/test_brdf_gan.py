@@ -716,6 +716,20 @@ def test_link_weight_raises_the_link_of_the_fakes():
         TrainSettings(link_beta=1.0)
 
 
+def _assert_label_op_gradients_and_refusals(op, labels: torch.Tensor, what: str = "regions") -> None:
+    """The template's last two parts for an op (N, C, R, R) maps x (R, R) uint8 labels: a float64 gradcheck, and
+    the refusals of maps without a channel axis and of labels that are not uint8."""
+    r = labels.shape[0]
+    g64 = torch.rand(2, 1, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(2), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: op(t, labels), (g64,))
+    x = torch.rand(3, 2, r, r)
+    with pytest.raises(ValueError, match=rf"expected float \(N, C, R, R\) maps and \(R, R\) uint8 {what} matching them, "
+                                         rf"got \(3, {r}, {r}\)"):
+        op(x[:, 0], labels)
+    with pytest.raises(ValueError, match=f"uint8 {what}"):
+        op(x, labels.long())
+
+
 def _two_regions(r: int = 16) -> torch.Tensor:
     """(r, r) uint8: label 2 on the left half's inner columns, 7 on the right's, 255 elsewhere."""
     regions = torch.full((r, r), 255, dtype=torch.uint8)
@@ -744,12 +758,7 @@ def test_region_texel_grain_known_values_gradients_and_bad_input():
     torch.testing.assert_close(region_texel_grain(check.expand(1, 1, r, r), regions)[0, :, 0], torch.tensor([2.4, 2.4]))
     ramp = torch.arange(r, dtype=torch.float32)[None, :].expand(r, r)
     assert float(region_texel_grain(torch.stack([ramp, torch.full_like(ramp, 3.0)])[None], regions).abs().max()) == 0.0
-    g64 = torch.randn(2, 1, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(2), requires_grad=True)
-    assert torch.autograd.gradcheck(lambda t: region_texel_grain(t, regions), (g64,))
-    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps and \(R, R\) uint8 regions matching them, got \(3, 16, 16\)"):
-        region_texel_grain(x[:, 0], regions)
-    with pytest.raises(ValueError, match="uint8 regions"):
-        region_texel_grain(x, regions.long())
+    _assert_label_op_gradients_and_refusals(region_texel_grain, regions)
 
 
 def test_region_texel_tails_match_reference_known_values_gradients_and_bad_input():
@@ -1134,6 +1143,201 @@ def test_texel_tail_weight_moves_the_fakes_tails(tmp_path):
     # the first step's gap: its batch of 8 against twice the 64 latents' mean, some targets below the floor (0.60)
     assert "texel_tail_gap" not in l_off[0] and l_up[0]["texel_tail_gap"] == pytest.approx(0.5, abs=0.15)
     _assert_region_term_refusals("texel_tail", data, tmp_path)
+
+
+def test_ring_profile_matches_reference_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import ring_profile
+
+    r = 12
+    bands = torch.full((r, r), 255, dtype=torch.uint8)
+    bands[5:7, 5:7] = 0
+    bands[3:9, 3:9][(bands[3:9, 3:9] == 255)] = 1
+    bands[1:11, 1:11][(bands[1:11, 1:11] == 255)] = 2
+    x = torch.rand(3, 2, r, r, generator=torch.Generator().manual_seed(0))
+    got = ring_profile(x, bands)
+    assert got.shape == (3, 2, 2) and got.dtype == x.dtype
+    # the slow reference: each band's plain mean, minus the outermost's
+    for k in range(2):
+        want = x[..., bands == k].mean(-1) - x[..., bands == 2].mean(-1)
+        torch.testing.assert_close(got[:, k], want)
+    # known values: a ring 0.2 darker than the skin beyond, an opening 0.5 brighter, whatever the sample's level
+    flat = torch.full((2, 1, r, r), 0.3)
+    flat[1] += 0.4
+    flat[..., bands == 1] -= 0.2
+    flat[..., bands == 0] += 0.5
+    torch.testing.assert_close(ring_profile(flat, bands), torch.tensor([[[0.5], [-0.2]]] * 2), atol=1e-6, rtol=0)
+    # texels outside the bands (255) count for nothing
+    moved = x.clone()
+    moved[..., bands == 255] = 9.0
+    torch.testing.assert_close(ring_profile(moved, bands), got)
+    _assert_label_op_gradients_and_refusals(ring_profile, bands, "bands")
+    with pytest.raises(ValueError, match=r"expected bands labelled 0 .. K-1 with K >= 2, got labels \[0, 2\]"):
+        ring_profile(x, torch.where(bands == 1, 255, bands).to(torch.uint8))
+    with pytest.raises(ValueError, match=r"got labels \[0\]"):
+        ring_profile(x, torch.where(bands > 0, 255, bands).to(torch.uint8))
+
+
+@pytest.mark.parametrize("resolution", [16, 64])
+def test_eye_rings_band_the_skin_around_the_openings_by_distance(resolution):
+    from fitme_cli.reflectance.gan.data import eye_openings, eye_rings, load_regions
+    from fitme_cli.shape.regions import REGIONS
+
+    bands = eye_rings(resolution)
+    assert bands.shape == (resolution,) * 2 and bands.dtype == torch.uint8
+    assert torch.equal(bands == 0, eye_openings(resolution))
+    # the openings, 7 bands and the rest of the skin from 64^2 up; at 16^2 the face ends with the 7th band
+    k = 9 if resolution >= 64 else 8
+    assert set(torch.unique(bands).tolist()) == {*range(k), 255}
+    # only the skin and eyes regions join a band: no brow, nose or unmapped texel
+    regions = load_regions(resolution)
+    ring = (bands > 0) & (bands < 255)
+    assert set(torch.unique(regions[ring]).tolist()) <= {REGIONS.index("skin"), REGIONS.index("eyes")}
+    # each band lies farther from the openings than the one before
+    inside = (bands == 0).numpy()
+    import cv2
+    dist = torch.from_numpy(cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
+    for band in range(1, k - 1):
+        assert float(dist[bands == band].max()) < float(dist[bands == band + 1].min()) + 1e-6
+
+
+def test_eye_ring_measure_is_the_log_albedo_profile_and_the_openings_spread():
+    """The eye-ring measure is ``ring_profile`` of the decoded albedo's log over ``eye_rings``, then the openings'
+    std, blind to the specular and the normals; a darker ring shows as a lower profile by its log ratio."""
+    from fitme_cli.reflectance.gan.data import eye_rings
+    from fitme_cli.reflectance.gan.metrics import region_moments, ring_profile
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _eye_ring
+
+    x = _tiny_data().float()
+    x[:, :3] += 0.2 * torch.rand(x[:, :3].shape, generator=torch.Generator().manual_seed(3))
+    bands = eye_rings(16)
+    k = len(torch.unique(bands)) - 1  # the bands, the openings among them (8 at 16^2)
+    got = _eye_ring(x, None)
+    assert got.shape == (16, (k + 2) * 3)
+    log = decode_maps(GanImages.split(x), TINY).albedo.clamp_min(1e-3).log()
+    opening = region_moments(log, bands)[:, 0]
+    want = torch.cat([ring_profile(log, bands).flatten(1), opening[:, 1], opening[:, 0], opening[:, 0] ** 2], 1)
+    torch.testing.assert_close(got, want)
+    other = x.clone()
+    other[:, 3:] = -other[:, 3:]
+    torch.testing.assert_close(_eye_ring(other, None), got)
+    # the first ring 20 % darker in linear albedo: its three entries fall by log 0.8, nothing else moves
+    m = decode_maps(GanImages.split(x), TINY)
+    m.albedo[..., bands == 1] *= 0.8
+    darker = _eye_ring(encode_maps(m, TINY).cat(), None)
+    shift = (darker - got).view(16, k + 2, 3)  # rows: the profile (k - 1), the openings' spread, mean, mean^2
+    torch.testing.assert_close(shift[:, 1], torch.full((16, 3), math.log(0.8)), atol=2e-3, rtol=0)
+    assert float(shift[:, [0, *range(2, k + 2)]].abs().max()) < 2e-3
+    # the openings 20 % darker: the profile's first row and their mean fall by log 0.8, their spread stays
+    m = decode_maps(GanImages.split(x), TINY)
+    m.albedo[..., bands == 0] *= 0.8
+    shift = (_eye_ring(encode_maps(m, TINY).cat(), None) - got).view(16, k + 2, 3)
+    for row in (0, k):
+        torch.testing.assert_close(shift[:, row], torch.full((16, 3), math.log(0.8)), atol=2e-3, rtol=0)
+    assert float(shift[:, 1:k].abs().max()) < 2e-3
+
+
+def test_eye_ring_weight_moves_the_fakes_profile(tmp_path):
+    """Same seed, same steps: the eye-ring term pulls G's profile toward a target above and one below; it needs its
+    regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _eye_ring
+
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    regions, data = _two_regions(), _tiny_data()
+
+    # without the term the tiny G's profile drifts by up to 0.45 in these steps, so the targets are set about where
+    # it ends: 0.3 above and below on the 21 profile entries (7 rows at 16^2), the openings' moments where they end
+    # (at 16^2 an opening is one texel, its spread 0)
+    _, off, l_off = _pulled("eye_ring", 0.0, _eye_ring, lambda b: b, regions, data, z)
+
+    def run(shift):
+        target = off.clone()
+        target[:21] += shift
+        _, now, out = _pulled("eye_ring", 20.0, _eye_ring, lambda b: target, regions, data, z)
+        return (now - off)[:21], out
+
+    up, l_up = run(0.3)
+    down, _ = run(-0.3)
+    # measured: mean 0.21 and -0.37, 19 and 21 of the 21 entries their way (the openings' moments, held, pull some
+    # back); the term dominates a tiny G's gradient and Adam normalises it, so weights 2-20 move it alike
+    assert float(up.mean()) > 0.1 and float(down.mean()) < -0.1, (up, down)
+    assert int((up > 0).sum()) >= 16 and int((down < 0).sum()) >= 16
+    # the first step's gap: the fresh G's first batch against the target (0.30 measured)
+    assert "eye_ring_gap" not in l_off[0] and 0.1 < l_up[0]["eye_ring_gap"] < 0.7
+    _assert_region_term_refusals("eye_ring", data, tmp_path)
+
+
+def test_region_edge_sharpness_matches_reference_known_values_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import region_edge_sharpness
+
+    r = 12
+    regions = _two_regions(r)
+    x = torch.rand(2, 2, r, r, generator=torch.Generator().manual_seed(0))
+    got = region_edge_sharpness(x, regions, 3)
+    assert got.shape == (2, 2, 2) and float(got.min()) >= 1 / 3 - 1e-6 and float(got.max()) <= 1
+    # the slow reference: every row and column run of 3 steps, in the region of its centre texel
+    num, den = torch.zeros(2, 2, 2, dtype=torch.float64), torch.zeros(2, 2, 2, dtype=torch.float64)
+    for k, lab in enumerate((2, 7)):
+        for i in range(r):
+            for j in range(r - 3):
+                for t, (a, b) in ((x, (i, j + 1)), (x.transpose(2, 3), (j + 1, i))):
+                    if int(regions[a, b]) != lab:
+                        continue
+                    steps = (t[:, :, i, j + 1 : j + 4] - t[:, :, i, j : j + 3]).abs().double()
+                    w = (t[:, :, i, j + 3] - t[:, :, i, j]).abs().double()
+                    num[:, k] += steps.max(-1).values * w
+                    den[:, k] += steps.sum(-1) * w
+    torch.testing.assert_close(got.double(), num / den, atol=1e-6, rtol=1e-5)
+    # known values: a step edge is 1, a ramp 1 / span, either way round; scale, offset and sign do not matter
+    cols = torch.arange(r, dtype=torch.float32)[None, None, None, :].expand(1, 1, r, r)
+    step = (cols >= 4).float() + (cols >= 8).float()  # one edge in each region (columns 2-4 and 7-9)
+    for span in (2, 4):
+        torch.testing.assert_close(region_edge_sharpness(step, regions, span), torch.ones(1, 2, 1))
+        torch.testing.assert_close(region_edge_sharpness(step.transpose(2, 3), regions, span), torch.ones(1, 2, 1))
+        torch.testing.assert_close(region_edge_sharpness(cols, regions, span), torch.full((1, 2, 1), 1 / span))
+    torch.testing.assert_close(region_edge_sharpness(2 - 3 * x, regions, 3), got, atol=1e-6, rtol=1e-5)
+    assert float(region_edge_sharpness(torch.ones(1, 1, r, r), regions).abs().max()) == 0.0  # flat: 0
+    _assert_label_op_gradients_and_refusals(region_edge_sharpness, regions)
+    with pytest.raises(ValueError, match="expected 1 <= span < R = 12, got 12"):
+        region_edge_sharpness(x, regions, 12)
+
+
+def test_edge_sharpness_is_the_log_luminances_and_blind_to_specular_and_normals():
+    from fitme_cli.reflectance.gan.metrics import region_edge_sharpness
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _edge_sharpness
+
+    regions = _two_regions()
+    x = _tiny_data().float()
+    x[:, :3] += 0.2 * torch.rand(x[:, :3].shape, generator=torch.Generator().manual_seed(3))
+    got = _edge_sharpness(x, regions)
+    assert got.shape == (16, 2)
+    lum = decode_maps(GanImages.split(x), TINY).albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
+    torch.testing.assert_close(got, region_edge_sharpness(lum, regions).flatten(1))
+    other = x.clone()
+    other[:, 3:] = -other[:, 3:]
+    torch.testing.assert_close(_edge_sharpness(other, regions), got)
+
+
+def test_edge_sharpness_weight_moves_the_fakes_sharpness(tmp_path):
+    """Same seed, same steps: the edge-sharpness term pulls G's sharpness toward a target above and one below where
+    it ends without the term; it needs its regions and target, and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _edge_sharpness
+
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    regions, data = _two_regions(), _tiny_data()
+    _, off, l_off = _pulled("edge_sharpness", 0.0, _edge_sharpness, lambda b: b, regions, data, z)
+
+    def run(shift):
+        _, now, out = _pulled("edge_sharpness", 20.0, _edge_sharpness, lambda b: off + shift, regions, data, z)
+        return now - off, out
+
+    up, l_up = run(0.2)
+    down, _ = run(-0.2)
+    assert float(up.min()) > 0.02 and float(down.max()) < -0.02, (up, down)  # 0.10-0.13 and -0.05 / -0.07 measured
+    # the first step's gap: the fresh G's first batch against off's end + 0.2 (0.19 measured)
+    assert "edge_sharpness_gap" not in l_off[0] and 0.05 < l_up[0]["edge_sharpness_gap"] < 0.5
+    _assert_region_term_refusals("edge_sharpness", data, tmp_path)
 
 
 def test_region_specular_link_known_values_gradients_and_bad_input():
@@ -2623,6 +2827,18 @@ def test_blind_rounds_hide_eight_of_each_and_score_counts_hits(tmp_path):
     assert blind_main(["score", str(tmp_path), str(tmp_path / "guesses.json"), "--card", str(tmp_path / "no_card.json")]) == 2
     with pytest.raises(ValueError, match=r"expected data of shape \(N >= 8, 7, 16, 16\)"):
         make_rounds(G, data[:4], tmp_path)
+    # G's specular is drawn from the 8 bits the data's files hold: every grey level of a G row's specular panel is one
+    # a stored data specular can show (x3, sRGB); unquantized, G's had more levels than the data's, a tell of its own
+    from fitme_cli.ops.srgb import linear_to_srgb
+
+    possible = set((linear_to_srgb((3 * torch.arange(256) / 255).clamp(0, 1)) * 255 + 0.5).to(torch.uint8).tolist())
+    G_rows = [rows[j] for j in range(8) if key[f"0-{j}"] == "G"]
+    assert all(set(np.unique(row[:, 20:32, 0]).tolist()) <= possible for row in G_rows)  # right of the number
+    with torch.no_grad():
+        x = G(torch.randn(8, TINY.z_dim), noise_mode="const").cat()
+    x[:, 3:4] += 0.01 * torch.randn(8, 1, 16, 16)  # a continuous specular
+    panel = _triplets(GanImages.split(x), G)[..., 16:32, 0]
+    assert set(np.unique(panel).tolist()) <= possible
 
 
 def test_blind_reference_sheets_show_data_the_rounds_do_not(tmp_path):
@@ -2804,7 +3020,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -2846,6 +3062,9 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "specular_spectrum_gap" not in lines[0]
     assert state.train.gamut_weight == 20.0 and 0 <= lines[-1]["gamut_share"] <= 1 and "gamut_share" not in lines[0]
     assert state.train.texel_tail_weight == 5.0 and lines[-1]["texel_tail_gap"] > 0 and "texel_tail_gap" not in lines[0]
+    assert state.train.eye_ring_weight == 10.0 and lines[-1]["eye_ring_gap"] > 0 and "eye_ring_gap" not in lines[0]
+    assert state.train.edge_sharpness_weight == 3.0 and lines[-1]["edge_sharpness_gap"] > 0
+    assert "edge_sharpness_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -3011,7 +3230,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "mean_map_abs_diff", "detail_map_log2_ratio", "albedo_chroma_band_ratio_by_region",
                       "specular_band_ratio_by_region", "texel_grain_ratio_by_region", "texel_lattice",
                       "chroma_texel_grain_ratio_by_region", "specular_link_by_region", "specular_spectrum_tv_by_region",
-                      "texel_tails_permille_by_region",
+                      "texel_tails_permille_by_region", "eye_ring_log_albedo", "edge_sharpness_by_region",
                       "albedo_gamut_violation_percent"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
@@ -3065,6 +3284,19 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     gamut = m["albedo_gamut_violation_percent"]  # greener than red, bluer than green
     assert list(gamut) == ["data", "gan"] and all(len(v) == 2 and all(0 <= p <= 100 for p in v) for v in gamut.values())
     assert gamut["data"] == [0.0, 0.0]  # the synthetic data keeps r >= g >= b everywhere
+    ring = m["eye_ring_log_albedo"]  # per side: the openings and four bands against the outer skin; the openings' spread
+    assert list(ring) == ["data", "gan"]
+    assert all(list(v) == ["profile_rgb", "opening_spread_q10_q50_q90", "opening_mean_rgb_mean_and_sd_over_samples"]
+               for v in ring.values())
+    assert all(len(c) == 3 and all(np.isfinite(c)) for v in ring.values() for c in v["opening_mean_rgb_mean_and_sd_over_samples"])
+    assert all(len(v["profile_rgb"]) == 8 and all(len(c) == 3 and all(np.isfinite(c)) for c in v["profile_rgb"])
+               for v in ring.values())
+    assert all(0 <= (q := v["opening_spread_q10_q50_q90"])[0] <= q[1] <= q[2] for v in ring.values())
+    # the data's eyeballs are 0.4 of the skin plus a fixed grey: against the skin, bluer than red
+    assert ring["data"]["profile_rgb"][0][2] > ring["data"]["profile_rgb"][0][0] + 0.1
+    edges = m["edge_sharpness_by_region"]  # the regions, the eye openings, brow edges and hairline
+    assert set(edges) == set(m["albedo_band_ratio_by_region"]) | {"eye_openings", "brow_edges", "hairline"}
+    assert all(list(v) == ["data", "gan"] and all(0.25 <= c <= 1 for c in v.values()) for v in edges.values())
     link = m["specular_link_by_region"]
     assert set(link) == set(m["albedo_band_ratio_by_region"])
     assert all(list(v) == ["data", "gan"] and all(-1 <= c <= 1 for c in v.values()) for v in link.values())

@@ -45,11 +45,15 @@ class BlindScore:
 
 def _triplets(imgs: GanImages, G: Generator) -> np.ndarray:
     """(B, R, 3R, 3) uint8: albedo sRGB | specular x3 sRGB (as ``report.closeup``: the raw specular is too dark to
-    judge) | normals 2.5 n + 0.5 (as ``train.sample_grid``)."""
+    judge) | normals 2.5 n + 0.5 (as ``train.sample_grid``). Every specular first goes through the 8 linear bits that
+    ``fitme dataset`` stores it in (the data's are there already): unquantized, G's x3 specular showed 159-222 grey
+    levels against the data's at most 86, and a judge told every G triplet by counting them (2026-11-30). The albedo
+    is stored as 8-bit sRGB, as the sheet shows it; the normals in 16 bits."""
     from ...ops.srgb import linear_to_srgb
 
     m = decode_maps(imgs, G.settings)
-    spec = linear_to_srgb((3 * m.specular).clamp(0, 1)).expand(-1, 3, -1, -1)
+    stored = (m.specular.clamp(0, 1) * 255).round() / 255
+    spec = linear_to_srgb((3 * stored).clamp(0, 1)).expand(-1, 3, -1, -1)
     x = torch.cat([linear_to_srgb(m.albedo), spec, (m.normals * 2.5 + 0.5).clamp(0, 1)], 3)
     return (x.permute(0, 2, 3, 1).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
 

@@ -8,6 +8,7 @@ as raw components in [-1, 1].
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,8 +20,8 @@ from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
 __all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "hairline_reach",
-           "hairline_references", "split_sides", "eye_openings", "brow_edges", "beard_zone", "HAIRLINE_LABEL", "EYE_LABEL",
-           "BROW_EDGE_LABEL", "SIDE_OFFSET"]
+           "hairline_references", "split_sides", "eye_openings", "eye_rings", "brow_edges", "beard_zone", "HAIRLINE_LABEL",
+           "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
 
@@ -199,6 +200,40 @@ def eye_openings(resolution: int) -> torch.Tensor:
     flat dim eyeball (0.4 of the skin plus a fixed grey). Most of it lies in the shape model's unmapped eye holes
     (90 of 121 texels at 256^2), which no region label covers."""
     return _layout_mask(resolution, lambda m: m > 0.5, "eye_inside")
+
+
+# the outer edges of ``eye_rings``' bands, in texels at 256^2 from the eye openings: G_ema's ring ("eyeshadow") at
+# 289.04 kimg spans 0-6 texels, and the socket out to ~26; the last band, the profile's reference, is all the skin
+# beyond (7286 texels at 256^2, 7-70 times a band's), so that a texel of it weighs too little for G to meet the
+# profile by moving it. A reference band as narrow as the others was moved: at 9-14 texels G darkened the socket with
+# it (293-294 kimg), at 26-34 the whole mid-face (D won within 0.5 kimg; docs/brdf_gan.md)
+_EYE_RING_EDGES = (2.0, 4.0, 6.0, 9.0, 14.0, 20.0, 26.0, math.inf)
+
+
+def eye_rings(resolution: int) -> torch.Tensor:
+    """(R, R) uint8: the training data's eye openings (``eye_openings``) labelled 0, and the skin around them in
+    bands of distance from them labelled 1, 2, ... (outer edges 2, 4, 6, 9, 14, 20 and 26 texels at 256^2, scaled to
+    R and each at least one texel wider than the one before, then all the rest; a band that holds no texel is dropped
+    and the labels stay consecutive), 255 elsewhere. Only texels of the shape model's skin and eyes regions join a
+    band: the brows (whose colour is the hair's), the forehead and the nose do not. ``metrics.ring_profile`` of these
+    bands, each against the last, is the eye-ring term's measure."""
+    from ...shape.regions import REGIONS
+
+    inside = eye_openings(resolution).numpy()
+    dist = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    regions = load_regions(resolution).numpy()
+    around = np.isin(regions, [REGIONS.index("skin"), REGIONS.index("eyes")]) & ~inside
+    out = np.full(inside.shape, 255, np.uint8)
+    out[inside] = 0
+    lo, band = 0.0, 1
+    for edge in _EYE_RING_EDGES:
+        hi = max(edge * resolution / 256, lo + 1)
+        sel = around & (dist > lo) & (dist <= hi)
+        if sel.any():
+            out[sel] = band
+            band += 1
+        lo = hi
+    return torch.from_numpy(out)
 
 
 def brow_edges(resolution: int) -> torch.Tensor:

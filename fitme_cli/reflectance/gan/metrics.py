@@ -46,7 +46,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
            "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
-           "region_specular_link", "region_texel_tails", "gamut_excess"]
+           "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
+           "region_edge_sharpness"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -196,6 +197,40 @@ def region_texel_tails(x: torch.Tensor, regions: torch.Tensor, k: float = 3.0, s
     z = (lap - mean[..., own]) / sd[..., own]
     shares = torch.stack([torch.sigmoid((z - k) / soft) @ w, torch.sigmoid((-z - k) / soft) @ w], -1)  # (N, C, k', 2)
     return (shares * ~flat[..., None]).transpose(1, 2)
+
+
+def region_edge_sharpness(x: torch.Tensor, regions: torch.Tensor, span: int = 4) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units, R > span; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, C) same dtype
+    in [1 / span, 1] (0 where a region is flat): per sample, region of ``region_labels`` and channel, how much of a
+    change across ``span`` texels happens in its largest single step. Over every row and column run of ``span`` steps,
+    each in the region of its centre texel, the sum of (largest |step|) * w over the sum of (sum of |steps|) * w, w the
+    run's net |change|, so that edges outweigh grain. A step edge gives 1, a linear ramp over the run 1 / span.
+    Invariant to a channel's scale, offset and sign. Differentiable almost everywhere.
+
+    The data's hair, brow, beard and lip edges are per-texel masks; G_ema's at 289.04 kimg were soft or doubled, the
+    judges' second tell. In the log albedo luminance (64 maps, medians) data against G: lips 0.75 / 0.60, hairline
+    0.58 / 0.52, skin 0.58 / 0.51 (its crisp pits), brow edges 0.52 / 0.48 (docs/brdf_gan.md)."""
+    if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    r = x.shape[-1]
+    if not 1 <= span < r:
+        raise ValueError(f"expected 1 <= span < R = {r}, got {span}")
+    w = _region_weights(regions, x).T  # (R*R, k)
+    num = den = 0
+    for t in (x, x.transpose(2, 3)):  # rows, then columns (a column run is a row run of the transpose)
+        steps = (t[..., 1:] - t[..., :-1]).abs()  # (N, C, R, R-1)
+        runs = torch.stack([steps[..., j : r - span + j] for j in range(span)], -1)  # runs starting at 0 .. R-span-1
+        weight = (t[..., span:] - t[..., :-span]).abs()
+        lo = span // 2  # the run from column c spans texels c .. c + span; its centre is c + span // 2
+        top = F.pad(runs.amax(-1) * weight, (lo, span - lo))  # back to (N, C, R, R), 0 outside
+        total = F.pad(runs.sum(-1) * weight, (lo, span - lo))
+        if t is not x:
+            top, total = top.transpose(2, 3), total.transpose(2, 3)
+        num = num + top.flatten(2) @ w
+        den = den + total.flatten(2) @ w
+    flat = den <= 0
+    return (num / torch.where(flat, torch.ones_like(den), den) * ~flat).transpose(1, 2)
 
 
 # ``texel_lattice``'s entries, in order
@@ -635,6 +670,21 @@ def region_specular_link(specular: torch.Tensor, normals: torch.Tensor, regions:
         raise ValueError(f"expected (N, 1, R, R) specular and (N, 3, R, R) normals, got {tuple(specular.shape)} and "
                          f"{tuple(normals.shape)}")
     return region_band_correlation(specular[:, 0], _divergence(normals)[:, None], regions)[..., 0]
+
+
+def ring_profile(x: torch.Tensor, bands: torch.Tensor) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units; bands: (R, R) uint8 labels 0 .. K-1 (each present, K >= 2; 255 not counted),
+    0 innermost -> (N, K - 1, C) same dtype: per sample and channel, the mean over each band but the outermost minus
+    the mean over the outermost. A ring darker than the skin it lies in, whatever the sample's tone, is negative in
+    log albedo (``data.eye_rings``: G_ema's "eyeshadow" at 289.04 kimg, docs/brdf_gan.md). Differentiable."""
+    if x.ndim != 4 or not x.is_floating_point() or bands.shape != x.shape[2:] or bands.dtype != torch.uint8:
+        raise ValueError(f"ring_profile: expected float (N, C, R, R) maps and (R, R) uint8 bands matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(bands.shape)} {bands.dtype}")
+    labels = region_labels(bands)
+    if len(labels) < 2 or labels != list(range(len(labels))):
+        raise ValueError(f"ring_profile: expected bands labelled 0 .. K-1 with K >= 2, got labels {labels}")
+    means = x.flatten(2) @ _region_weights(bands, x).T  # (N, C, K)
+    return (means[..., :-1] - means[..., -1:]).transpose(1, 2)
 
 
 def region_coherence(img: torch.Tensor, regions: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:

@@ -26,11 +26,13 @@ from torch import nn
 
 from .ada import augment
 from ...shape.regions import REGIONS
-from .data import BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, hairline_reach, hairline_references
+from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, eye_rings, hairline_reach,
+                   hairline_references)
 from .latents import sample_z
 from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussian_blur, log_chroma, region_band_energy,
-                      region_coherence, region_labels, region_moments, region_relief, region_specular_link, region_spectrum,
-                      region_texel_grain, region_texel_tails, soft_hair_share, soft_hairline_share, texel_lattice)
+                      region_coherence, region_edge_sharpness, region_labels, region_moments, region_relief,
+                      region_specular_link, region_spectrum, region_texel_grain, region_texel_tails, ring_profile,
+                      soft_hair_share, soft_hairline_share, texel_lattice)
 from .networks import Discriminator, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_specular
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
@@ -45,7 +47,8 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
 # ``running_{term}`` in the state, and its measure in ``_region_measures``
 _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone", "crown", "mean_map", "tone_order",
                  "detail_map", "tone_band", "hairline_share", "chroma_band", "specular_band", "grain", "lattice",
-                 "chroma_grain", "specular_link", "specular_spectrum", "texel_tail")
+                 "chroma_grain", "specular_link", "specular_spectrum", "texel_tail", "eye_ring",
+                 "edge_sharpness")
 
 
 @dataclass(frozen=True)
@@ -281,6 +284,21 @@ class TrainSettings:
     # (docs/brdf_gan.md). Drift-style, relative to the target floored at ``_TAIL_FLOOR``. 0: off
     texel_tail_weight: float = 0.0
     texel_tail_beta: float = 0.99  # per-step decay of the running shares
+    # not in the paper: the skin around the eye openings against the skin beyond (``data.eye_rings``' bands), and the
+    # openings' flatness (``_eye_ring``). At 289.04 kimg G_ema drew a dark ring ("eyeshadow") 0-6 texels around the
+    # openings, 0.10-0.15 lower in log albedo than the data's, and openings less flat (the log albedo's spread within
+    # one: 0.077 at the 10th percentile of samples, the data's 0.015) that followed the skin's tone more than the data's
+    # grey: the judges' first tell (docs/brdf_gan.md).
+    # Drift-style like the relief term (absolute, log units). 0: off
+    eye_ring_weight: float = 0.0
+    eye_ring_beta: float = 0.99  # per-step decay of the running profile
+    # not in the paper: each region's edge sharpness (``metrics.region_edge_sharpness`` of the log albedo luminance:
+    # how much of a change across 4 texels happens in its largest step, edges weighing most), pulled to the data's.
+    # The data's hair, brow, beard and lip edges are per-texel masks; at 289.04 kimg G_ema's were soft or doubled, the
+    # judges' second tell (medians, data / G: lips 0.75 / 0.60, hairline 0.58 / 0.52; docs/brdf_gan.md).
+    # Drift-style like the relief term (absolute). 0: off
+    edge_sharpness_weight: float = 0.0
+    edge_sharpness_beta: float = 0.99  # per-step decay of the running sharpness
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -506,6 +524,15 @@ class TrainState:
     # the texel-tail term's target, and G's running ones; derived and saved like the link's
     texel_tail_target: torch.Tensor | None = None
     running_texel_tail: torch.Tensor | None = None
+    # (11 * 3,) float32 from 32^2 up: the data's eye-ring profile and openings' moments (``_eye_ring``), the eye-ring
+    # term's target,
+    # and G's running ones; derived and saved like the link's
+    eye_ring_target: torch.Tensor | None = None
+    running_eye_ring: torch.Tensor | None = None
+    # (k,) float32: the data's per-region edge sharpness (``_edge_sharpness``), the edge-sharpness term's target, and
+    # G's running one; derived and saved like the link's
+    edge_sharpness_target: torch.Tensor | None = None
+    running_edge_sharpness: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -844,6 +871,33 @@ def _texel_tails(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torc
     return region_texel_tails(_luminance_and_specular(x, s), regions).flatten(1)
 
 
+@functools.lru_cache(maxsize=4)
+def _eye_ring_bands(resolution: int) -> torch.Tensor:
+    return eye_rings(resolution)
+
+
+def _eye_ring(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, (K + 2) * 3), K the labels of ``data.eye_rings`` (9 from 32^2 up): the
+    eye-ring term's measure, in the linear albedo's log (floored at 1e-3), per channel: ``metrics.ring_profile`` over
+    ``data.eye_rings`` (the openings and the bands of skin around them, each against the outermost), the openings'
+    spread (std over their texels), their mean and its square.
+    The square, averaged over samples, is what holds the openings' spread between samples: the data's eyeballs are
+    0.4 of the skin plus a fixed grey, so they vary less than the skin (at 290.25 kimg G_ema's followed it: a pinkish
+    white on fair skin, where the data's is a grey darker than the skin). ``regions`` is not used: the bands are the
+    layout's at the maps' resolution."""
+    bands = _eye_ring_bands(x.shape[-1]).to(x.device)
+    log = decode_albedo(x[:, :3]).clamp_min(1e-3).log()
+    moments = region_moments(log, bands)[:, 0]  # (B, 2, 3): the openings' mean and std
+    return torch.cat([ring_profile(log, bands).flatten(1), moments[:, 1], moments[:, 0], moments[:, 0].square()], 1)
+
+
+def _edge_sharpness(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k): per region, ``metrics.region_edge_sharpness`` of the log of the linear
+    albedo's mean of r, g, b (floored at 1e-3), the edge-sharpness term's measure."""
+    log = decode_albedo(x[:, :3]).mean(1, keepdim=True).clamp_min(1e-3).log()
+    return region_edge_sharpness(log, regions).flatten(1)
+
+
 _TAIL_FLOOR = 0.002  # the tail term's scale floor: 2 per mille, against a near-0 target (the data's nose has no bumps)
 
 
@@ -1177,7 +1231,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "lattice": lambda x, regions: texel_lattice(x).flatten(1), "chroma_grain": _chroma_grain,
             "specular_link": lambda x, regions: _specular_link(x, regions, gan),
             "specular_spectrum": lambda x, regions: _specular_spectra(x, regions, gan),
-            "texel_tail": lambda x, regions: _texel_tails(x, regions, gan)}
+            "texel_tail": lambda x, regions: _texel_tails(x, regions, gan), "eye_ring": _eye_ring,
+            "edge_sharpness": _edge_sharpness}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -1185,7 +1240,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # specular_spectrum: mean TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the
 # same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map: over ``_detail_map_scale``;
 # tone_band and chroma_band and specular_band, grain, lattice and chroma_grain as band; beard, hairline_share, crown,
-# mean_map and specular_link: mean |running - target|; texel_tail: as colour, floored at ``_TAIL_FLOOR``
+# mean_map, specular_link, eye_ring and edge_sharpness: mean |running - target|; texel_tail: as colour, floored at
+# ``_TAIL_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
@@ -1196,7 +1252,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "specular_band": (band_loss, _relative_gap), "grain": (band_loss, _relative_gap),
                   "lattice": (band_loss, _relative_gap), "chroma_grain": (band_loss, _relative_gap),
                   "specular_link": (coherence_loss, _abs_gap), "specular_spectrum": (spectrum_loss, _spectrum_gap),
-                  "texel_tail": (tail_loss, _tail_gap)}
+                  "texel_tail": (tail_loss, _tail_gap), "eye_ring": (coherence_loss, _abs_gap),
+                  "edge_sharpness": (coherence_loss, _abs_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
