@@ -288,8 +288,9 @@ class TrainSettings:
     # openings' flatness (``_eye_ring``). At 289.04 kimg G_ema drew a dark ring ("eyeshadow") 0-6 texels around the
     # openings, 0.10-0.15 lower in log albedo than the data's, and openings less flat (the log albedo's spread within
     # one: 0.077 at the 10th percentile of samples, the data's 0.015) that followed the skin's tone more than the data's
-    # grey: the judges' first tell (docs/brdf_gan.md).
-    # Drift-style like the relief term (absolute, log units). 0: off
+    # grey: the judges' first tell. The profile's reference is all the skin beyond 26 texels: G met a profile against a
+    # narrower band by darkening the band with it (docs/brdf_gan.md). Drift-style like the relief term (absolute, log
+    # units). 0: off
     eye_ring_weight: float = 0.0
     eye_ring_beta: float = 0.99  # per-step decay of the running profile
     # not in the paper: each region's edge sharpness (``metrics.region_edge_sharpness`` of the log albedo luminance:
@@ -525,8 +526,7 @@ class TrainState:
     texel_tail_target: torch.Tensor | None = None
     running_texel_tail: torch.Tensor | None = None
     # (11 * 3,) float32 from 32^2 up: the data's eye-ring profile and openings' moments (``_eye_ring``), the eye-ring
-    # term's target,
-    # and G's running ones; derived and saved like the link's
+    # term's target, and G's running ones; derived and saved like the link's
     eye_ring_target: torch.Tensor | None = None
     running_eye_ring: torch.Tensor | None = None
     # (k,) float32: the data's per-region edge sharpness (``_edge_sharpness``), the edge-sharpness term's target, and
