@@ -1195,10 +1195,39 @@ def test_eye_rings_band_the_skin_around_the_openings_by_distance(resolution):
         assert float(dist[bands == band].max()) < float(dist[bands == band + 1].min()) + 1e-6
 
 
+@pytest.mark.parametrize("resolution", [16, 64, 256])
+def test_eye_ring_halves_split_the_near_bands_and_their_zone_above_and_below_the_openings(resolution):
+    from fitme_cli.reflectance.gan.data import eye_ring_halves, eye_rings
+
+    bands, halves = eye_rings(resolution), eye_ring_halves(resolution)
+    assert halves.shape == (2, resolution, resolution) and halves.dtype == torch.uint8
+    rows = torch.arange(resolution)[:, None].expand(resolution, resolution)
+    centre = rows[bands == 0].double().mean()
+    far = int(bands[bands != 255].max())
+    for h, side in enumerate((rows < centre, rows >= centre)):
+        half = halves[h]
+        if resolution == 16 and h == 0:  # the openings are the layout's top edge of the eye: nothing above them
+            assert not bool((half != 255).any())
+            continue
+        labels = torch.unique(half[half != 255]).tolist()
+        assert labels == list(range(len(labels))) and len(labels) >= 3, labels
+        zone = labels[-1]
+        assert bool((half[(bands > 3) & (bands < far) & side] == zone).all())  # the zone: bands 6-26 texels on this side
+        assert not bool(((half != 255) & ~side).any()) and not bool(((half != 255) & ((bands == 0) | (bands == far))).any())
+        near = [b for b in (1, 2, 3) if bool((side & (bands == b)).any())]  # the near bands, in order, empty ones dropped
+        for label, b in enumerate(near):
+            assert bool(torch.equal(half == label, side & (bands == b)))
+        if resolution == 256:
+            assert len(labels) == 4 and int((half == zone).sum()) > 900
+
+
 def test_eye_ring_measure_is_the_log_albedo_profile_and_the_openings_spread():
     """The eye-ring measure is ``ring_profile`` of the decoded albedo's log over ``eye_rings``, then the openings'
-    std, blind to the specular and the normals; a darker ring shows as a lower profile by its log ratio."""
+    std, mean and mean square, then ``ring_profile`` over each half of ``eye_ring_halves`` with a band (at 16^2 the
+    lower) and its absolute value, blind to the specular and the normals; a darker ring shows as a lower profile by its
+    log ratio, and as a lower near band against its zone."""
     from fitme_cli.reflectance.gan.data import eye_rings
+    from fitme_cli.reflectance.gan.data import eye_ring_halves
     from fitme_cli.reflectance.gan.metrics import region_moments, ring_profile
     from fitme_cli.reflectance.gan.networks import decode_maps
     from fitme_cli.reflectance.gan.train import _eye_ring
@@ -1208,28 +1237,43 @@ def test_eye_ring_measure_is_the_log_albedo_profile_and_the_openings_spread():
     bands = eye_rings(16)
     k = len(torch.unique(bands)) - 1  # the bands, the openings among them (8 at 16^2)
     got = _eye_ring(x, None)
-    assert got.shape == (16, (k + 2) * 3)
+    head = (k + 2) * 3  # then the near bands against their zone, below the openings (none above at 16^2), and |.|
+    lower = eye_ring_halves(16)[1]
+    n = int(lower[lower != 255].max())  # the near bands below (3 at 16^2)
+    assert got.shape == (16, head + 2 * n * 3) and not bool((eye_ring_halves(16)[0] != 255).any())
     log = decode_maps(GanImages.split(x), TINY).albedo.clamp_min(1e-3).log()
     opening = region_moments(log, bands)[:, 0]
-    want = torch.cat([ring_profile(log, bands).flatten(1), opening[:, 1], opening[:, 0], opening[:, 0] ** 2], 1)
+    near = ring_profile(log, lower).flatten(1)
+    want = torch.cat([ring_profile(log, bands).flatten(1), opening[:, 1], opening[:, 0], opening[:, 0] ** 2, near,
+                      near.abs()], 1)
     torch.testing.assert_close(got, want)
     other = x.clone()
     other[:, 3:] = -other[:, 3:]
     torch.testing.assert_close(_eye_ring(other, None), got)
-    # the first ring 20 % darker in linear albedo: its three entries fall by log 0.8, nothing else moves
+    # the first ring 20 % darker in linear albedo: its three profile entries fall by log 0.8, and its contrast with the
+    # zone beyond; nothing else moves
     m = decode_maps(GanImages.split(x), TINY)
     m.albedo[..., bands == 1] *= 0.8
     darker = _eye_ring(encode_maps(m, TINY).cat(), None)
-    shift = (darker - got).view(16, k + 2, 3)  # rows: the profile (k - 1), the openings' spread, mean, mean^2
+    shift = (darker - got)[:, :head].view(16, k + 2, 3)  # rows: the profile (k - 1), the openings' spread, mean, mean^2
     torch.testing.assert_close(shift[:, 1], torch.full((16, 3), math.log(0.8)), atol=2e-3, rtol=0)
     assert float(shift[:, [0, *range(2, k + 2)]].abs().max()) < 2e-3
-    # the openings 20 % darker: the profile's first row and their mean fall by log 0.8, their spread stays
+    # below the openings the band 0-2 is near band 0 (the only one ``eye_rings`` band 1 feeds): it falls by log 0.8
+    # against its zone, the other near bands hold
+    first = lower == 0
+    assert bool((bands[first] == 1).all()) and not bool(((bands == 1) & (lower != 0) & (lower != 255)).any())
+    moved = (darker - got)[:, head:head + n * 3].view(16, n, 3)
+    torch.testing.assert_close(moved[:, 0], torch.full((16, 3), math.log(0.8)), atol=2e-3, rtol=0)
+    assert float(moved[:, 1:].abs().max()) < 2e-3
+    # the openings 20 % darker: the profile's first row and their mean fall by log 0.8, their spread stays, and so do
+    # the contrasts
     m = decode_maps(GanImages.split(x), TINY)
     m.albedo[..., bands == 0] *= 0.8
-    shift = (_eye_ring(encode_maps(m, TINY).cat(), None) - got).view(16, k + 2, 3)
+    moved = _eye_ring(encode_maps(m, TINY).cat(), None) - got
+    shift = moved[:, :head].view(16, k + 2, 3)
     for row in (0, k):
         torch.testing.assert_close(shift[:, row], torch.full((16, 3), math.log(0.8)), atol=2e-3, rtol=0)
-    assert float(shift[:, 1:k].abs().max()) < 2e-3
+    assert float(shift[:, 1:k].abs().max()) < 2e-3 and float(moved[:, head:].abs().max()) < 2e-3
 
 
 def test_eye_ring_weight_moves_the_fakes_profile(tmp_path):
@@ -1381,6 +1425,149 @@ def test_specular_link_weight_moves_the_fakes_link_and_is_blind_to_the_albedo(tm
     # the first step's gap is its batch of 8 against the 64 latents' mean + 0.5: the tiny G's link varies between
     # latents (0.59 measured)
     _check_shifted_pull("specular_link", lambda y, r: _specular_link(y, r, TINY), regions, _tiny_data(), tmp_path, 0.15)
+
+
+def _slope_link_reference(spec: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """The slow reference of ``region_slope_link``: each texel's slopes from its clamped neighbours, then numpy's
+    correlation per sample, region and axis (0 for a flat region)."""
+    from fitme_cli.reflectance.gan.metrics import region_labels
+
+    n, _, r, _ = spec.shape
+    s = spec[:, 0].double().numpy()
+    du, dv = np.zeros_like(s), np.zeros_like(s)
+    for i in range(r):
+        for j in range(r):
+            du[:, i, j] = (s[:, i, min(j + 1, r - 1)] - s[:, i, max(j - 1, 0)]) / 2
+            dv[:, i, j] = (s[:, max(i - 1, 0), j] - s[:, min(i + 1, r - 1), j]) / 2  # v up, rows down
+    out = np.zeros((n, len(region_labels(regions)), 2))
+    for k, lab in enumerate(region_labels(regions)):
+        m = (regions == lab).numpy()
+        for b in range(n):
+            for a, (slope, nc) in enumerate(((du, 0), (dv, 1))):
+                x, y = slope[b][m], normals[b, nc].double().numpy()[m]
+                out[b, k, a] = 0.0 if x.std() == 0 or y.std() == 0 else np.corrcoef(x, y)[0, 1]
+    return torch.from_numpy(out)
+
+
+def test_region_slope_link_matches_reference_known_values_gradients_and_bad_input():
+    """Against the loop reference; a specular that is the bumps' height has its slope opposite the normals' tilt
+    (< -0.9), its negative the mirror, an unrelated one ~0; a scale of the normals or an affine change of the
+    specular changes nothing; flat: 0; float64 gradients; bad input refused."""
+    from fitme_cli.reflectance.gan.metrics import region_slope_link
+
+    r = 32
+    regions = _two_regions(r)
+    h, nxy = (torch.stack(t) for t in zip(*(_bumps(r, seed) for seed in range(4))))
+    n = torch.cat([nxy, (1 - nxy.square().sum(1, keepdim=True)).sqrt()], 1)
+    noisy = h[:, None] + 0.3 * torch.rand(4, 1, r, r, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(region_slope_link(noisy, n, regions).double(), _slope_link_reference(noisy, n, regions),
+                               atol=1e-5, rtol=1e-4)
+    got = region_slope_link(h[:, None], n, regions)
+    assert got.shape == (4, 2, 2) and float(got.max()) < -0.9, got
+    torch.testing.assert_close(region_slope_link(-h[:, None], n, regions), -got)
+    torch.testing.assert_close(region_slope_link(0.1 * h[:, None] - 3, n * torch.tensor([10.0, 10, 1]).view(1, 3, 1, 1),
+                                                 regions), got, atol=1e-4, rtol=1e-4)
+    other = torch.rand(4, 1, r, r, generator=torch.Generator().manual_seed(5))
+    assert float(region_slope_link(other, n, regions).mean(0).abs().max()) < 0.15
+    assert float(region_slope_link(torch.ones(4, 1, r, r), n, regions).abs().max()) == 0.0
+    s64 = torch.rand(2, 1, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(6), requires_grad=True)
+    n64 = torch.randn(2, 3, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(7), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda s, m: region_slope_link(s, m, regions), (s64, n64))
+    for bad_s, bad_n, bad_r in ((h, n, regions), (h[:, None], nxy, regions), (h[:, None], n, regions.long()),
+                                (h[:, None].long(), n, regions), (h[:, None], n, regions[:-1])):
+        with pytest.raises(ValueError, match=r"region_slope_link: expected float \(N, 1, R, R\) specular, \(N, 3, R, R\) "
+                                             r"normals and \(R, R\) uint8 regions matching them, got"):
+            region_slope_link(bad_s, bad_n, bad_r)
+
+
+def test_specular_slope_weight_moves_the_fakes_slope_and_is_blind_to_the_albedo(tmp_path):
+    """The specular-slope measure is ``region_slope_link`` of the decoded specular and the normals, blind to the albedo;
+    with the term G's correlation moves toward a target above and one below where it starts; refusals as every
+    per-region term's."""
+    from fitme_cli.reflectance.gan.metrics import region_slope_link
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _specular_slope
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    m = decode_maps(GanImages.split(x), TINY)
+    got = _specular_slope(x, regions, TINY)
+    assert got.shape == (3, 4)
+    torch.testing.assert_close(got, region_slope_link(m.specular, x[:, 4:7], regions).flatten(1))
+    other = x.clone()
+    other[:, :3] = torch.randn(3, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(_specular_slope(other, regions, TINY), got)
+    _check_shifted_pull("specular_slope", lambda y, r: _specular_slope(y, r, TINY), regions, _tiny_data(), tmp_path, 0.15)
+
+
+def test_row_profile_matches_reference_known_values_gradients_and_bad_input():
+    """Each masked row's mean minus the whole mask's, rows top to bottom, empty rows left out; a band of rows shows
+    by its offset whatever the sample's level; texels outside the mask count for nothing; float64 gradients; bad
+    input refused."""
+    from fitme_cli.reflectance.gan.metrics import row_profile
+
+    r = 12
+    mask = torch.zeros(r, r, dtype=torch.bool)
+    mask[2:9, 3:10] = True
+    mask[5, 3:5] = False  # a row with fewer texels
+    x = torch.rand(3, 2, r, r, generator=torch.Generator().manual_seed(0))
+    got = row_profile(x, mask)
+    assert got.shape == (3, 7, 2) and got.dtype == x.dtype
+    for k, row in enumerate(range(2, 9)):  # the slow reference
+        torch.testing.assert_close(got[:, k], x[:, :, row][..., mask[row]].mean(-1) - x[..., mask].mean(-1))
+    flat = torch.full((2, 1, r, r), 0.3)
+    flat[1] += 0.5
+    flat[:, :, 4] += 0.7  # a band on row 4, whatever the sample's level
+    want = torch.full((7,), -0.7 * 7 / mask.sum().item())
+    want[2] += 0.7
+    torch.testing.assert_close(row_profile(flat, mask), want.view(1, 7, 1).expand(2, 7, 1), atol=1e-6, rtol=0)
+    moved = x.clone()
+    moved[..., ~mask] = 9.0
+    torch.testing.assert_close(row_profile(moved, mask), got)
+    g64 = torch.rand(2, 1, r, r, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: row_profile(t, mask), (g64,))
+    for bad_x, bad_m in ((x[:, 0], mask), (x.long(), mask), (x, mask.to(torch.uint8)), (x, mask[:-1]),
+                         (x, torch.zeros_like(mask))):
+        with pytest.raises(ValueError, match=r"row_profile: expected float \(N, C, R, R\) maps and a non-empty \(R, R\) "
+                                             r"bool mask matching them, got"):
+            row_profile(bad_x, bad_m)
+
+
+def test_forehead_rows_measure_is_the_log_chroma_row_profile_and_pulls(tmp_path):
+    """The forehead-rows measure is ``row_profile`` of the decoded albedo's log chromaticity over the layout's forehead
+    (hairline band carved), then its absolute value, blind to the specular, the normals and the albedo's brightness; a
+    redder row shows on its row; with the term G's profile moves toward a target above and one below; refusals as
+    every per-region term's."""
+    from fitme_cli.reflectance.gan.data import hairline_band, load_regions
+    from fitme_cli.reflectance.gan.metrics import log_chroma, row_profile
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _forehead, _forehead_rows
+    from fitme_cli.shape.regions import REGIONS
+
+    forehead = _forehead(16)
+    assert bool(forehead.any()) and not bool((forehead & hairline_band(16)).any())
+    assert bool((load_regions(16)[forehead] == REGIONS.index("forehead")).all())
+    x = _tiny_data().float()
+    m = decode_maps(GanImages.split(x), TINY)
+    got = _forehead_rows(x, None)
+    profile = row_profile(log_chroma(m.albedo), forehead)
+    k = profile.shape[1]
+    torch.testing.assert_close(got, torch.cat([profile.flatten(1), profile.abs().flatten(1)], 1))
+    other = x.clone()
+    other[:, 3:] = -other[:, 3:]
+    torch.testing.assert_close(_forehead_rows(other, None), got)
+    brighter = decode_maps(GanImages.split(x), TINY)
+    brighter.albedo[:] = brighter.albedo * 0.8
+    torch.testing.assert_close(_forehead_rows(encode_maps(brighter, TINY).cat(), None), got, atol=2e-3, rtol=0)
+    redder = decode_maps(GanImages.split(x), TINY)
+    row = int(forehead.any(1).nonzero()[1, 0])  # the forehead's second row
+    redder.albedo[:, 0, row][:, forehead[row]] *= 1.2
+    shift = (_forehead_rows(encode_maps(redder, TINY).cat(), None) - got)[:, : k * 2].view(16, k, 2)
+    share = float(forehead[row].sum() / forehead.sum())  # red-green: that row up by log 1.2, the mean by its share
+    want = torch.full((k,), -math.log(1.2) * share)
+    want[1] += math.log(1.2)
+    torch.testing.assert_close(shift[..., 0], want.expand(16, k), atol=2e-3, rtol=0)
+    _check_shifted_pull("forehead_rows", _forehead_rows, _two_regions(), _tiny_data(), tmp_path, 0.2)
 
 
 def test_mean_map_weight_pulls_a_patch_of_the_mean_maps(tmp_path):
@@ -3015,7 +3202,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -3060,6 +3247,10 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.eye_ring_weight == 10.0 and lines[-1]["eye_ring_gap"] > 0 and "eye_ring_gap" not in lines[0]
     assert state.train.edge_sharpness_weight == 3.0 and lines[-1]["edge_sharpness_gap"] > 0
     assert "edge_sharpness_gap" not in lines[0]
+    assert state.train.specular_slope_weight == 4.0 and lines[-1]["specular_slope_gap"] > 0
+    assert "specular_slope_gap" not in lines[0]
+    assert state.train.forehead_rows_weight == 6.0 and lines[-1]["forehead_rows_gap"] > 0
+    assert "forehead_rows_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -3226,7 +3417,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "specular_band_ratio_by_region", "texel_grain_ratio_by_region", "texel_lattice",
                       "chroma_texel_grain_ratio_by_region", "specular_link_by_region", "specular_spectrum_tv_by_region",
                       "texel_tails_permille_by_region", "eye_ring_log_albedo", "edge_sharpness_by_region",
-                      "albedo_gamut_violation_percent"}
+                      "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
+                      "eye_near_bands_by_half"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -3283,6 +3475,12 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert list(ring) == ["data", "gan"]
     assert all(list(v) == ["profile_rgb", "opening_spread_q10_q50_q90", "opening_mean_rgb_mean_and_sd_over_samples"]
                for v in ring.values())
+    halves = m["eye_near_bands_by_half"]  # per side and half: each near band against its zone, mean and mean |.|
+    assert list(halves) == ["data", "gan"] and all(list(v) == ["upper", "lower"] for v in halves.values())
+    for v in halves.values():
+        for h in v.values():
+            assert list(h) == ["mean_rgb", "mean_abs_rgb"] and len(h["mean_rgb"]) == len(h["mean_abs_rgb"]) >= 2
+            assert all(abs(a) <= b + 1e-3 for ra, rb in zip(h["mean_rgb"], h["mean_abs_rgb"]) for a, b in zip(ra, rb))
     assert all(len(c) == 3 and all(np.isfinite(c)) for v in ring.values() for c in v["opening_mean_rgb_mean_and_sd_over_samples"])
     assert all(len(v["profile_rgb"]) == 8 and all(len(c) == 3 and all(np.isfinite(c)) for c in v["profile_rgb"])
                for v in ring.values())
@@ -3295,6 +3493,19 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     link = m["specular_link_by_region"]
     assert set(link) == set(m["albedo_band_ratio_by_region"])
     assert all(list(v) == ["data", "gan"] and all(-1 <= c <= 1 for c in v.values()) for v in link.values())
+    slope = m["specular_slope_by_region"]  # per region and side: the mean along u and v, the quantiles of their mean
+    assert set(slope) == set(link) and all(list(v) == ["data", "gan"] for v in slope.values())
+    assert all(list(c) == ["u_v", "q10_q90"] and all(-1 <= t <= 1 for t in c["u_v"] + c["q10_q90"])
+               and c["q10_q90"][0] <= c["q10_q90"][1] for v in slope.values() for c in v.values())
+    # the data's scalp specular is its strands' height: its slope runs against the normals' tilt
+    assert max(slope["scalp"]["data"]["u_v"]) < -0.5, slope["scalp"]
+    rows = m["forehead_row_log_chroma"]  # per side and axis: the mean profile's peak, the per-sample peaks' quantiles
+    assert list(rows) == ["data", "gan"] and all(list(v) == ["mean_profile_max_abs", "sample_max_abs_q50_q90"]
+                                                 for v in rows.values())
+    assert all(len(v["mean_profile_max_abs"]) == 2 and min(v["mean_profile_max_abs"]) >= 0 for v in rows.values())
+    assert all(0 <= q[0] <= q[1] for v in rows.values() for q in v["sample_max_abs_q50_q90"])
+    # the data's forehead has no rows of their own colour: its mean profile is flat next to each sample's grain
+    assert max(rows["data"]["mean_profile_max_abs"]) < max(rows["data"]["sample_max_abs_q50_q90"][0]), rows
     lattice = m["texel_lattice"]  # per channel and part; the data's parities are near 1 (its maps are smooth at 64^2)
     assert list(lattice) == ["albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"]
     assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())

@@ -49,7 +49,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "beard_weight", "tone_weight", "crown_weight", "mean_map_weight", "tone_order_weight", "detail_map_weight",
                 "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "lattice_weight",
                 "chroma_grain_weight", "specular_link_weight", "specular_spectrum_weight", "texel_tail_weight",
-                "eye_ring_weight", "edge_sharpness_weight",
+                "eye_ring_weight", "edge_sharpness_weight", "specular_slope_weight", "forehead_rows_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -184,6 +184,14 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="Pull each region's edge sharpness in G's albedo (how much of a change across 4 texels happens in "
                    "one step) to the data's, against soft or doubled hair, brow and lip edges (not in the paper; may "
                    "change on --resume). [0]")
+@click.option("--specular-slope-weight", type=click.FloatRange(min=0),
+              help="Pull each region's correlation of the specular's slope with the normals' tilt to the data's, "
+                   "against a specular that is not its strands' and pores' height (not in the paper; may change on "
+                   "--resume). [0]")
+@click.option("--forehead-rows-weight", type=click.FloatRange(min=0),
+              help="Pull the profile of G's albedo colour down the forehead's rows (each row against the forehead, and "
+                   "its absolute value) to the data's flat one, against a coloured band across the forehead (not in the "
+                   "paper; may change on --resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

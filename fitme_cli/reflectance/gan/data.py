@@ -236,6 +236,37 @@ def eye_rings(resolution: int) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
+_EYE_RING_NEAR = 3  # ``eye_ring_halves``: the bands nearest the openings (0-2, 2-4 and 4-6 texels at 256^2)
+
+
+def eye_ring_halves(resolution: int) -> torch.Tensor:
+    """(2, R, R) uint8: ``eye_rings``' texels above the openings' mean row (0) and at or below it (1). In each half the
+    three bands nearest the openings (0-2, 2-4 and 4-6 texels at 256^2) are labelled 0, 1, ... in order (one empty in
+    that half is dropped) and the bands beyond them to 26 texels (the zone they sit in) the last label; 255
+    elsewhere, and all 255 in a half without a near band or a zone (the upper half below 32^2). ``metrics.ring_profile`` over each half is each near band against the zone just outside it on the same
+    side of the eye: the data's upper lid and its under-eye darkening differ (log albedo: -0.03 and -0.07 against the
+    zone), and a ring profile over whole bands was met at 301.25 kimg by a lighter, peach upper lid and a darker
+    under-eye (docs/brdf_gan.md)."""
+    bands = eye_rings(resolution)
+    k = int(bands[bands != 255].max())  # the far skin's label, the profile's reference in ``eye_rings``
+    rows = torch.arange(resolution)[:, None].expand(resolution, resolution)
+    centre = rows[bands == 0].double().mean()
+    out = torch.full((2, resolution, resolution), 255, dtype=torch.uint8)
+    for h, side in enumerate((rows < centre, rows >= centre)):
+        label = 0
+        for band in range(1, _EYE_RING_NEAR + 1):
+            sel = side & (bands == band)
+            if bool(sel.any()):
+                out[h][sel] = label
+                label += 1
+        zone = side & (bands > _EYE_RING_NEAR) & (bands < k)
+        if label and bool(zone.any()):
+            out[h][zone] = label
+        else:  # below 32^2 the openings are a texel or two at the layout's top edge of the eye
+            out[h] = 255
+    return out
+
+
 def brow_edges(resolution: int) -> torch.Tensor:
     """(R, R) bool: a 3-texel ring along the edge of the training data's brows (the layout's ``brows`` > 0.5,
     where every sample's brow hair is; its density varies). 312 texels at 256^2, 305 of them from the brows region,

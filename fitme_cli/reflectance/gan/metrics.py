@@ -47,7 +47,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
            "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
-           "region_edge_sharpness"]
+           "region_edge_sharpness", "region_slope_link", "row_profile"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -647,16 +647,42 @@ def region_band_correlation(a: torch.Tensor, b: torch.Tensor, regions: torch.Ten
             or regions.shape != a.shape[1:] or regions.dtype != torch.uint8):
         raise ValueError(f"expected float (N, R, R) and (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
                          f"{tuple(a.shape)} {a.dtype}, {tuple(b.shape)} and {tuple(regions.shape)} {regions.dtype}")
+    band = _bandpass(torch.cat([a[:, None], b.to(a)], 1), 1)[0]  # (N, 1 + C, R, R)
+    return _paired_region_correlation(band[:, :1].expand_as(band[:, 1:]), band[:, 1:], regions)
+
+
+def _paired_region_correlation(a: torch.Tensor, b: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """a, b: (N, C, R, R) float; regions: (R, R) uint8 -> (N, k, C) a's dtype in [-1, 1]: per sample, region and channel
+    c, the correlation of a[:, c] with b[:, c] over the region's texels. A flat region gives 0."""
     w = _region_weights(regions, a).T  # (R*R, k)
-    band = _bandpass(torch.cat([a[:, None], b.to(a)], 1), 1)[0].flatten(2)  # (N, 1 + C, R*R)
-    mean = band @ w  # (N, 1 + C, k)
-    var = (band.square() @ w - mean.square()).clamp_min(0)
-    cov = (band[:, :1] * band[:, 1:]) @ w - mean[:, :1] * mean[:, 1:]  # (N, C, k)
-    both = var[:, :1] * var[:, 1:]
+    a, b = a.flatten(2), b.to(a).flatten(2)  # (N, C, R*R)
+    ma, mb = a @ w, b @ w  # (N, C, k)
+    both = (a.square() @ w - ma.square()).clamp_min(0) * (b.square() @ w - mb.square()).clamp_min(0)
+    cov = (a * b) @ w - ma * mb
     # cov / sqrt(both) without the root's infinite gradient at a flat region (as ``region_band_energy``)
     flat = both <= 0
     corr = cov / torch.where(flat, torch.ones_like(both), both).sqrt() * ~flat
     return corr.transpose(1, 2)
+
+
+def region_slope_link(specular: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """specular: (N, 1, R, R), any affine units; normals: (N, 3, R, R) (unit, or network space: only x and y are read);
+    regions: (R, R) uint8 -> (N, k, 2) in [-1, 1]: per sample and region, the correlation of the specular's slope
+    along u (central differences, replicated borders) with the normals' x, and of its slope along v (rows go down, v
+    up) with their y. The data's scalp specular is its strands' height, so its slope is the normals' tilt at every
+    scale (128 maps: -0.91 / -0.94, q90 -0.885), where G_ema's at 297.67 kimg was -0.86 / -0.89 (q10 -0.883): the
+    297.67 judge K's measure, which ``region_specular_link``, the finest band only, could not see (0.882 vs 0.868).
+    Differentiable (the BRDF-GAN's specular-slope term)."""
+    if (specular.ndim != 4 or specular.shape[1] != 1 or not specular.is_floating_point()
+            or normals.shape != (specular.shape[0], 3, *specular.shape[2:]) or regions.shape != specular.shape[2:]
+            or regions.dtype != torch.uint8):
+        raise ValueError(f"region_slope_link: expected float (N, 1, R, R) specular, (N, 3, R, R) normals and (R, R) "
+                         f"uint8 regions matching them, got {tuple(specular.shape)} {specular.dtype}, "
+                         f"{tuple(normals.shape)} and {tuple(regions.shape)} {regions.dtype}")
+    p = F.pad(specular, (1, 1, 1, 1), mode="replicate")[:, 0]
+    du = (p[:, 1:-1, 2:] - p[:, 1:-1, :-2]) / 2
+    dv = (p[:, :-2, 1:-1] - p[:, 2:, 1:-1]) / 2  # v grows upward: the row above minus the row below
+    return _paired_region_correlation(torch.stack([du, dv], 1), normals[:, :2], regions)
 
 
 def region_specular_link(specular: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
@@ -685,6 +711,24 @@ def ring_profile(x: torch.Tensor, bands: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"ring_profile: expected bands labelled 0 .. K-1 with K >= 2, got labels {labels}")
     means = x.flatten(2) @ _region_weights(bands, x).T  # (N, C, K)
     return (means[..., :-1] - means[..., -1:]).transpose(1, 2)
+
+
+def row_profile(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units; mask: (R, R) bool, not empty -> (N, K, C) same dtype, K the rows holding mask
+    texels, top to bottom: per sample and channel, each row's mean over the mask minus the whole mask's mean. The
+    data's forehead has no rows of its own colour, so its log chromaticity's profile is flat (per sample, the largest
+    row |deviation| smoothed over 5 rows: median 0.02 red-green); at 297.67 kimg G_ema drew a redder band across its
+    middle (rows 50-58 of 38-70 at 256^2: mean +0.1, median per sample 0.09; the judges' "red band across the
+    forehead", docs/brdf_gan.md). Differentiable."""
+    if x.ndim != 4 or not x.is_floating_point() or mask.shape != x.shape[2:] or mask.dtype != torch.bool or not bool(mask.any()):
+        raise ValueError(f"row_profile: expected float (N, C, R, R) maps and a non-empty (R, R) bool mask matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(mask.shape)} {mask.dtype}")
+    m = mask.to(x)
+    counts = m.sum(1)
+    rows = counts > 0
+    sums = (x * m).sum(-1)  # (N, C, R)
+    means = sums[..., rows] / counts[rows]
+    return (means - sums.sum(-1, keepdim=True) / m.sum()).transpose(1, 2)
 
 
 def region_coherence(img: torch.Tensor, regions: torch.Tensor, sigma: float = 1.5) -> torch.Tensor:

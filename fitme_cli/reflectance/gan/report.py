@@ -15,13 +15,14 @@ import numpy as np
 import torch
 
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, brow_edges, eye_openings,
-                   eye_rings, hairline_band, hairline_zones, load_dataset, load_regions, split_sides)
+                   eye_ring_halves, eye_rings, hairline_band, hairline_zones, load_dataset, load_regions, split_sides)
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_region, feature_parts, frechet_distance, gamut_excess,
                       hair_share, interpolation_smoothness, log_chroma, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief, region_texel_grain,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence, texel_lattice, LATTICE_PARTS,
-                      region_edge_sharpness, region_specular_link, region_texel_tails, ring_profile)
+                      region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
+                      ring_profile, row_profile)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -100,10 +101,32 @@ class _Side:
     eye_ring: torch.Tensor
     edge_sharpness: torch.Tensor  # (k',) ``metrics.region_edge_sharpness`` of the log albedo luminance per region of
     # ``edges`` (``features`` and the hairline band)
+    specular_slope: torch.Tensor  # (N, k, 2) per sample ``metrics.region_slope_link`` (along u vs normals x, v vs y)
+    # (N, K, 2) per sample ``metrics.row_profile`` of the albedo's ``metrics.log_chroma`` over the forehead's K rows (the
+    # hairline band carved out)
+    forehead_rows: torch.Tensor
+    # (2 * n, 3) mean over samples, log linear albedo: ``metrics.ring_profile`` over each half of
+    # ``data.eye_ring_halves`` (the near bands above the openings, then below; n in all), then its absolute value
+    eye_halves: torch.Tensor
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
-_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring")
+_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows")
+
+
+def _slope_row(slope: torch.Tensor) -> dict[str, list[float]]:
+    """(N, 2) one region's ``_Side.specular_slope`` -> its mean along u and v, and the quantiles of their mean."""
+    both = slope.double().mean(1).numpy()
+    return {"u_v": [round(float(v), 3) for v in slope.double().mean(0)],
+            "q10_q90": [round(float(v), 3) for v in np.quantile(both, [0.1, 0.9])]}
+
+
+def _forehead_row(rows: torch.Tensor) -> dict[str, list[float]]:
+    """(N, K, 2) ``_Side.forehead_rows`` -> per axis (red-green, yellow-blue): the largest |mean over samples| of a row,
+    and the quantiles 50 / 90 % over samples of each sample's largest row |deviation|."""
+    peak = rows.double().abs().amax(1).numpy()
+    return {"mean_profile_max_abs": [round(float(v), 3) for v in rows.double().mean(0).abs().amax(0)],
+            "sample_max_abs_q50_q90": [[round(float(v), 3) for v in np.quantile(peak[:, c], [0.5, 0.9])] for c in range(2)]}
 
 
 def _eye_ring_row(ring: torch.Tensor) -> dict[str, list]:
@@ -115,6 +138,20 @@ def _eye_ring_row(ring: torch.Tensor) -> dict[str, list]:
             "opening_spread_q10_q50_q90": [round(float(v), 3) for v in q],
             "opening_mean_rgb_mean_and_sd_over_samples": [[round(float(v), 3) for v in ring[:, -1].mean(0)],
                                                          [round(float(v), 3) for v in ring[:, -1].std(0)]]}
+
+
+def _eye_halves_row(near: torch.Tensor, halves: torch.Tensor) -> dict[str, dict[str, list]]:
+    """(2 * n, 3) ``_Side.eye_halves``, (2, R, R) ``data.eye_ring_halves`` -> per half with bands, the near bands'
+    mean profile over samples (each band against the zone beyond it, x r, g, b) and their mean |profile|."""
+    rows = [int(h[h != 255].max()) if bool((h != 255).any()) else 0 for h in halves]  # near bands per half
+    signed, absolute = near[: len(near) // 2], near[len(near) // 2:]
+    out, at = {}, 0
+    for name, n in zip(("upper", "lower"), rows):
+        if n:
+            out[name] = {"mean_rgb": [[round(float(v), 3) for v in row] for row in signed[at:at + n]],
+                         "mean_abs_rgb": [[round(float(v), 3) for v in row] for row in absolute[at:at + n]]}
+        at += n
+    return out
 
 
 def _spectrum_rows(gan: torch.Tensor, real: torch.Tensor, half: int, regions: torch.Tensor) -> dict[str, dict]:
@@ -137,6 +174,10 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     """One side of the comparison (generated when src is None); ``features``: the regions with the eye openings and
     brow edges carved in (``data.EYE_LABEL``, ``data.BROW_EDGE_LABEL``); ``beard``: ``data.beard_zone``; ``rings``:
     ``data.eye_rings``; ``edges``: ``features`` with the hairline band (``data.HAIRLINE_LABEL``)."""
+    from ...shape.regions import REGIONS
+
+    forehead = edges == REGIONS.index("forehead")  # the hairline band carved out, as the forehead-rows term's
+    halves = eye_ring_halves(regions.shape[0])
     st = _Stats(mapped)
     fs, cm, cr = [], [], []
     # each per-batch measure under its ``_Side`` field's name; those in ``_PER_SAMPLE`` are kept per sample, the
@@ -156,6 +197,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         chroma = log_chroma(x[:, :3])
         grain_maps = torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 3:6]], 1)
         log = x[:, :3].clamp_min(1e-3).log()
+        near = [ring_profile(log, h) for h in halves if bool((h != 255).any())]  # above the openings, below
         batch = {
             "spectra": region_spectrum(x[:, :3].mean(1), regions),
             "hairline": region_band_energy(x[:, :3], zones).mean(3),
@@ -169,11 +211,14 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "texel_grain": region_texel_grain(grain_maps, regions),
             "chroma_grain": region_texel_grain(chroma, regions),
             "specular_link": region_specular_link(x[:, 3:4], x[:, 4:7], regions),
+            "specular_slope": region_slope_link(x[:, 3:4], x[:, 4:7], regions),
+            "forehead_rows": row_profile(chroma, forehead),
             "lattice": texel_lattice(net),
             "specular_spectra": region_spectrum(x[:, 3], regions),
             "texel_tails": region_texel_tails(grain_maps[:, :2], regions),
             "gamut": (gamut_excess(x[:, :3]) > 0).double().mean((2, 3)),
             "eye_ring": torch.cat([ring_profile(log, rings), region_moments(log, rings)[:, 0].flip(1)], 1),
+            "eye_halves": torch.cat([*near, *(p.abs() for p in near)], 1),
             "edge_sharpness": region_edge_sharpness(x[:, :3].mean(1, keepdim=True).clamp_min(1e-3).log(), edges)[..., 0],
         }
         for k, v in batch.items():
@@ -326,6 +371,12 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # channel; the
         # quantiles over samples of the openings' spread (std of the log albedo, mean of r, g, b); the openings' mean
         "eye_ring_log_albedo": {side: _eye_ring_row(m.eye_ring) for side, m in (("data", real), ("gan", gan))},
+        # a halo that differs from face to face, or above and below the eye (the 297.67 and 301.25 kimg states): above
+        # the openings and below them (``data.eye_ring_halves``), each of the bands 0-2, 2-4 and 4-6 texels from them
+        # against the 6-26 texel zone on that side, log linear albedo per channel: its mean over samples and its mean
+        # absolute value
+        "eye_near_bands_by_half": {side: _eye_halves_row(m.eye_halves, eye_ring_halves(regions.shape[0]))
+                                   for side, m in (("data", real), ("gan", gan))},
         # soft or doubled hair, brow and lip edges (the 289.04 kimg judges' second tell): per region (with the eye
         # openings, brow edges and hairline), ``metrics.region_edge_sharpness`` of the log albedo luminance, the mean
         # over samples: how much of a change across 4 texels happens in one step (a step edge 1, a ramp 0.25)
@@ -340,6 +391,16 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "specular_link_by_region": {_region_name(lab): {"data": round(float(real.specular_link[j]), 3),
                                                         "gan": round(float(gan.specular_link[j]), 3)}
                                     for j, lab in enumerate(region_labels(regions))},
+        # a specular that is not its strands' height (the 297.67 kimg judge K's measure): per region, the correlation
+        # of the specular's slope along u and v with the normals' x and y (``metrics.region_slope_link``), the mean over
+        # samples of each, and the 10th and 90th percentiles over samples of their mean
+        "specular_slope_by_region": {_region_name(lab): {side: _slope_row(m.specular_slope[:, j])
+                                                         for side, m in (("data", real), ("gan", gan))}
+                                     for j, lab in enumerate(region_labels(regions))},
+        # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
+        # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
+        # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
+        "forehead_row_log_chroma": {side: _forehead_row(m.forehead_rows) for side, m in (("data", real), ("gan", gan))},
         # colour fringes and coloured rim texels (the 267.35 kimg judges): per region, G's single-texel grain of the
         # albedo's log chromaticity (red-green, yellow-blue) over the data's
         "chroma_texel_grain_ratio_by_region": _ratios_by_region(gan.chroma_grain, real.chroma_grain, regions),

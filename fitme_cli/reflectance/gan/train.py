@@ -27,12 +27,12 @@ from torch import nn
 from .ada import augment
 from ...shape.regions import REGIONS
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, eye_rings, hairline_reach,
-                   hairline_references)
+                   hairline_references, eye_ring_halves, load_regions)
 from .latents import sample_z
 from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussian_blur, log_chroma, region_band_energy,
                       region_coherence, region_edge_sharpness, region_labels, region_moments, region_relief,
-                      region_specular_link, region_spectrum, region_texel_grain, region_texel_tails, ring_profile,
-                      soft_hair_share, soft_hairline_share, texel_lattice)
+                      region_slope_link, region_specular_link, region_spectrum, region_texel_grain, region_texel_tails,
+                      ring_profile, row_profile, soft_hair_share, soft_hairline_share, texel_lattice)
 from .networks import Discriminator, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_specular
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
@@ -48,7 +48,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
 _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "tone", "crown", "mean_map", "tone_order",
                  "detail_map", "tone_band", "hairline_share", "chroma_band", "specular_band", "grain", "lattice",
                  "chroma_grain", "specular_link", "specular_spectrum", "texel_tail", "eye_ring",
-                 "edge_sharpness")
+                 "edge_sharpness", "specular_slope", "forehead_rows")
 
 
 @dataclass(frozen=True)
@@ -300,6 +300,19 @@ class TrainSettings:
     # Drift-style like the relief term (absolute). 0: off
     edge_sharpness_weight: float = 0.0
     edge_sharpness_beta: float = 0.99  # per-step decay of the running sharpness
+    # not in the paper: each region's correlation of the specular's slope (along u and v) with the normals' tilt (x and
+    # y) (``metrics.region_slope_link``, ``_specular_slope``). The data's scalp specular is its strands' height, so its
+    # slope is the normals' tilt at every scale (-0.91 / -0.94); at 297.67 kimg G_ema's was -0.86 / -0.89, the
+    # distributions almost apart, which a judge measured and the finest-band specular link cannot see (0.882 vs 0.868;
+    # docs/brdf_gan.md). Drift-style like the relief term (absolute). 0: off
+    specular_slope_weight: float = 0.0
+    specular_slope_beta: float = 0.99  # per-step decay of the running correlations
+    # not in the paper: the rows of the forehead (the layout's, the hairline band carved out): each row's mean log
+    # chromaticity against the forehead's (``metrics.row_profile``, ``_forehead_rows``), and its absolute value. The
+    # data's is flat; at 297.67 kimg G_ema drew a redder band across the forehead's middle on average and on a fifth of
+    # the faces by more than 0.15 (docs/brdf_gan.md). Drift-style like the relief term (absolute, log units). 0: off
+    forehead_rows_weight: float = 0.0
+    forehead_rows_beta: float = 0.99  # per-step decay of the running profile
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -525,7 +538,7 @@ class TrainState:
     # the texel-tail term's target, and G's running ones; derived and saved like the link's
     texel_tail_target: torch.Tensor | None = None
     running_texel_tail: torch.Tensor | None = None
-    # (11 * 3,) float32 from 32^2 up: the data's eye-ring profile and openings' moments (``_eye_ring``), the eye-ring
+    # (11 * 3 + 36,) float32 from 64^2 up: the data's eye-ring profile and openings' moments (``_eye_ring``), the eye-ring
     # term's target, and G's running ones; derived and saved like the link's
     eye_ring_target: torch.Tensor | None = None
     running_eye_ring: torch.Tensor | None = None
@@ -533,6 +546,14 @@ class TrainState:
     # G's running one; derived and saved like the link's
     edge_sharpness_target: torch.Tensor | None = None
     running_edge_sharpness: torch.Tensor | None = None
+    # (k * 2,) float32: the data's per-region specular slope link (``_specular_slope``), the specular-slope term's
+    # target, and G's running mean of it
+    specular_slope_target: torch.Tensor | None = None
+    running_specular_slope: torch.Tensor | None = None
+    # (K * 2 * 2,) float32, K the forehead's rows: the data's forehead row profile and its absolute value
+    # (``_forehead_rows``), the forehead-rows term's target, and G's running mean of it
+    forehead_rows_target: torch.Tensor | None = None
+    running_forehead_rows: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -876,19 +897,33 @@ def _eye_ring_bands(resolution: int) -> torch.Tensor:
     return eye_rings(resolution)
 
 
+@functools.lru_cache(maxsize=4)
+def _eye_ring_halves(resolution: int) -> torch.Tensor:
+    return eye_ring_halves(resolution)
+
+
 def _eye_ring(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
-    """(B, 7, R, R) network space -> (B, (K + 2) * 3), K the labels of ``data.eye_rings`` (9 from 32^2 up): the
+    """(B, 7, R, R) network space -> (B, (K + 2) * 3 + 36), K the labels of ``data.eye_rings`` (9 from 32^2 up): the
     eye-ring term's measure, in the linear albedo's log (floored at 1e-3), per channel: ``metrics.ring_profile`` over
     ``data.eye_rings`` (the openings and the bands of skin around them, each against the outermost), the openings'
     spread (std over their texels), their mean and its square.
     The square, averaged over samples, is what holds the openings' spread between samples: the data's eyeballs are
     0.4 of the skin plus a fixed grey, so they vary less than the skin (at 290.25 kimg G_ema's followed it: a pinkish
     white on fair skin, where the data's is a grey darker than the skin). ``regions`` is not used: the bands are the
-    layout's at the maps' resolution."""
+    layout's at the maps' resolution.
+    Then, above the openings and below them (``data.eye_ring_halves``), ``metrics.ring_profile`` of the three bands
+    nearest them against the zone beyond them on that side, and its absolute value: the mean over samples of the one
+    holds an upper lid lighter and an under-eye darker than the data's (the whole ring's profile was met so at 301.25
+    kimg), of the other a halo dark or tinted on some faces and light on others (297.67 kimg), which a mean cannot
+    see. The absolute value, not the square: its pull on a sample's contrast does not fade as it nears the data's
+    0.01-0.05. (B, (K + 2) * 3 + 36) in all from 64^2 up (fewer texels below, and no upper half below 32^2)."""
     bands = _eye_ring_bands(x.shape[-1]).to(x.device)
     log = decode_albedo(x[:, :3]).clamp_min(1e-3).log()
     moments = region_moments(log, bands)[:, 0]  # (B, 2, 3): the openings' mean and std
-    return torch.cat([ring_profile(log, bands).flatten(1), moments[:, 1], moments[:, 0], moments[:, 0].square()], 1)
+    near = [ring_profile(log, half).flatten(1) for half in _eye_ring_halves(x.shape[-1]).to(x.device)
+            if bool((half != 255).any())]
+    return torch.cat([ring_profile(log, bands).flatten(1), moments[:, 1], moments[:, 0], moments[:, 0].square(),
+                      *near, *(p.abs() for p in near)], 1)
 
 
 def _edge_sharpness(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
@@ -924,6 +959,28 @@ def _specular_link(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> to
     normals' divergence's (``metrics.region_specular_link``), the specular-link term's measure. ``s``: the specular's
     decoding."""
     return region_specular_link(decode_specular(x[:, 3:4], s), x[:, 4:7], regions)
+
+
+def _specular_slope(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k * 2): per region, the correlation of the linear specular's slope along u and
+    v with the normals' x and y (``metrics.region_slope_link``), the specular-slope term's measure. ``s``: the
+    specular's decoding."""
+    return region_slope_link(decode_specular(x[:, 3:4], s), x[:, 4:7], regions).flatten(1)
+
+
+@functools.lru_cache(maxsize=4)
+def _forehead(resolution: int) -> torch.Tensor:
+    return load_regions(resolution, hairline=True) == REGIONS.index("forehead")
+
+
+def _forehead_rows(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, K * 2 * 2), K the forehead's rows: ``metrics.row_profile`` of the linear
+    albedo's ``metrics.log_chroma`` (red-green, yellow-blue) over the layout's forehead, the hairline band carved out
+    (``data.load_regions(hairline=True)``: where the hair's colour enters it), then its absolute value: the mean over
+    samples of the one holds a band G draws on every face, of the other a band on some faces, of either sign.
+    ``regions`` is not used: the forehead is the layout's at the maps' resolution."""
+    profile = row_profile(log_chroma(decode_albedo(x[:, :3])), _forehead(x.shape[-1]).to(x.device))
+    return torch.cat([profile.flatten(1), profile.abs().flatten(1)], 1)
 
 
 def data_band(data: torch.Tensor, regions: torch.Tensor, levels: int, n: int = 512, chunk: int = 64) -> torch.Tensor:
@@ -1232,7 +1289,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "specular_link": lambda x, regions: _specular_link(x, regions, gan),
             "specular_spectrum": lambda x, regions: _specular_spectra(x, regions, gan),
             "texel_tail": lambda x, regions: _texel_tails(x, regions, gan), "eye_ring": _eye_ring,
-            "edge_sharpness": _edge_sharpness}
+            "edge_sharpness": _edge_sharpness,
+            "specular_slope": lambda x, regions: _specular_slope(x, regions, gan), "forehead_rows": _forehead_rows}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -1240,8 +1298,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # specular_spectrum: mean TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the
 # same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map: over ``_detail_map_scale``;
 # tone_band and chroma_band and specular_band, grain, lattice and chroma_grain as band; beard, hairline_share, crown,
-# mean_map, specular_link, eye_ring and edge_sharpness: mean |running - target|; texel_tail: as colour, floored at
-# ``_TAIL_FLOOR``
+# mean_map, specular_link, eye_ring, edge_sharpness, specular_slope and forehead_rows: mean |running - target|;
+# texel_tail: as colour, floored at ``_TAIL_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
@@ -1253,7 +1311,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "lattice": (band_loss, _relative_gap), "chroma_grain": (band_loss, _relative_gap),
                   "specular_link": (coherence_loss, _abs_gap), "specular_spectrum": (spectrum_loss, _spectrum_gap),
                   "texel_tail": (tail_loss, _tail_gap), "eye_ring": (coherence_loss, _abs_gap),
-                  "edge_sharpness": (coherence_loss, _abs_gap)}
+                  "edge_sharpness": (coherence_loss, _abs_gap), "specular_slope": (coherence_loss, _abs_gap),
+                  "forehead_rows": (coherence_loss, _abs_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
