@@ -1500,6 +1500,31 @@ def test_specular_slope_weight_moves_the_fakes_slope_and_is_blind_to_the_albedo(
     _check_shifted_pull("specular_slope", lambda y, r: _specular_slope(y, r, TINY), regions, _tiny_data(), tmp_path, 0.15)
 
 
+def test_albedo_specular_link_is_the_grains_correlation_and_its_square_and_pulls(tmp_path):
+    """The albedo-specular-link measure is ``region_band_correlation`` of the decoded albedo's mean of r, g, b with the
+    decoded specular, then its square, blind to the normals; a specular that is the albedo's grain gives 1; with the
+    term G's correlation moves toward a target above and one below; refusals as every per-region term's."""
+    from fitme_cli.reflectance.gan.metrics import region_band_correlation
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _albedo_specular_link
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    m = decode_maps(GanImages.split(x), TINY)
+    got = _albedo_specular_link(x, regions, TINY)
+    link = region_band_correlation(m.albedo.mean(1), m.specular, regions)[..., 0]
+    torch.testing.assert_close(got, torch.cat([link, link.square()], 1))
+    other = x.clone()
+    other[:, 4:] = -other[:, 4:]
+    torch.testing.assert_close(_albedo_specular_link(other, regions, TINY), got)
+    same = decode_maps(GanImages.split(x), TINY)
+    same.specular[:] = 0.02 + 0.1 * same.albedo.mean(1, keepdim=True)  # the albedo's grain, within the specular's range
+    torch.testing.assert_close(_albedo_specular_link(encode_maps(same, TINY).cat(), regions, TINY), torch.ones(3, 4),
+                               atol=2e-3, rtol=0)
+    _check_shifted_pull("albedo_specular_link", lambda y, r: _albedo_specular_link(y, r, TINY), regions, _tiny_data(),
+                        tmp_path, 0.2)
+
+
 def test_row_profile_matches_reference_known_values_gradients_and_bad_input():
     """Each masked row's mean minus the whole mask's, rows top to bottom, empty rows left out; a band of rows shows
     by its offset whatever the sample's level; texels outside the mask count for nothing; float64 gradients; bad
@@ -3202,7 +3227,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -3251,6 +3276,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "specular_slope_gap" not in lines[0]
     assert state.train.forehead_rows_weight == 6.0 and lines[-1]["forehead_rows_gap"] > 0
     assert "forehead_rows_gap" not in lines[0]
+    assert state.train.albedo_specular_link_weight == 3.0 and lines[-1]["albedo_specular_link_gap"] > 0
+    assert "albedo_specular_link_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -3418,7 +3445,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "chroma_texel_grain_ratio_by_region", "specular_link_by_region", "specular_spectrum_tv_by_region",
                       "texel_tails_permille_by_region", "eye_ring_log_albedo", "edge_sharpness_by_region",
                       "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
-                      "eye_near_bands_by_half"}
+                      "eye_near_bands_by_half", "albedo_specular_link_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -3499,6 +3526,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                and c["q10_q90"][0] <= c["q10_q90"][1] for v in slope.values() for c in v.values())
     # the data's scalp specular is its strands' height: its slope runs against the normals' tilt
     assert max(slope["scalp"]["data"]["u_v"]) < -0.5, slope["scalp"]
+    grain = m["albedo_specular_link_by_region"]  # per region and side: the mean, the 10th and 90th percentiles
+    assert set(grain) == set(link) and all(list(v) == ["data", "gan"] for v in grain.values())
+    assert all(len(c) == 3 and all(-1 <= t <= 1 for t in c) and c[1] <= c[0] <= c[2] for v in grain.values()
+               for c in v.values())
     rows = m["forehead_row_log_chroma"]  # per side and axis: the mean profile's peak, the per-sample peaks' quantiles
     assert list(rows) == ["data", "gan"] and all(list(v) == ["mean_profile_max_abs", "sample_max_abs_q50_q90"]
                                                  for v in rows.values())

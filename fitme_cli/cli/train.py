@@ -50,6 +50,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "lattice_weight",
                 "chroma_grain_weight", "specular_link_weight", "specular_spectrum_weight", "texel_tail_weight",
                 "eye_ring_weight", "edge_sharpness_weight", "specular_slope_weight", "forehead_rows_weight",
+                "albedo_specular_link_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -192,6 +193,10 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="Pull the profile of G's albedo colour down the forehead's rows (each row against the forehead, and "
                    "its absolute value) to the data's flat one, against a coloured band across the forehead (not in the "
                    "paper; may change on --resume). [0]")
+@click.option("--albedo-specular-link-weight", type=click.FloatRange(min=0),
+              help="Pull each region's correlation of G's albedo grain with its specular grain, and its square, to the "
+                   "data's, whose pores and speckles are one field in both maps (not in the paper; may change on "
+                   "--resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

@@ -22,7 +22,7 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief, region_texel_grain,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence, texel_lattice, LATTICE_PARTS,
                       region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
-                      ring_profile, row_profile)
+                      ring_profile, row_profile, region_band_correlation)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -102,6 +102,8 @@ class _Side:
     edge_sharpness: torch.Tensor  # (k',) ``metrics.region_edge_sharpness`` of the log albedo luminance per region of
     # ``edges`` (``features`` and the hairline band)
     specular_slope: torch.Tensor  # (N, k, 2) per sample ``metrics.region_slope_link`` (along u vs normals x, v vs y)
+    # (N, k) per sample ``metrics.region_band_correlation`` of the albedo's mean of r, g, b with the specular
+    albedo_specular_link: torch.Tensor
     # (N, K, 2) per sample ``metrics.row_profile`` of the albedo's ``metrics.log_chroma`` over the forehead's K rows (the
     # hairline band carved out)
     forehead_rows: torch.Tensor
@@ -111,7 +113,8 @@ class _Side:
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
-_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows")
+_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows",
+               "albedo_specular_link")
 
 
 def _slope_row(slope: torch.Tensor) -> dict[str, list[float]]:
@@ -212,6 +215,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "chroma_grain": region_texel_grain(chroma, regions),
             "specular_link": region_specular_link(x[:, 3:4], x[:, 4:7], regions),
             "specular_slope": region_slope_link(x[:, 3:4], x[:, 4:7], regions),
+            "albedo_specular_link": region_band_correlation(x[:, :3].mean(1), x[:, 3:4], regions)[..., 0],
             "forehead_rows": row_profile(chroma, forehead),
             "lattice": texel_lattice(net),
             "specular_spectra": region_spectrum(x[:, 3], regions),
@@ -401,6 +405,15 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
         "forehead_row_log_chroma": {side: _forehead_row(m.forehead_rows) for side, m in (("data", real), ("gan", gan))},
+        # albedo grain that is not the specular's (the 308.28 kimg judge M's measure): per region, the correlation of the
+        # albedo's finest band (mean of r, g, b) with the specular's (``metrics.region_band_correlation``), the mean
+        # over samples and the 10th and 90th percentiles
+        "albedo_specular_link_by_region": {
+            _region_name(lab): {side: [round(float(v), 3) for v in (m.albedo_specular_link[:, j].double().mean(),
+                                                                    *np.quantile(m.albedo_specular_link[:, j].double().numpy(),
+                                                                                 [0.1, 0.9]))]
+                                for side, m in (("data", real), ("gan", gan))}
+            for j, lab in enumerate(region_labels(regions))},
         # colour fringes and coloured rim texels (the 267.35 kimg judges): per region, G's single-texel grain of the
         # albedo's log chromaticity (red-green, yellow-blue) over the data's
         "chroma_texel_grain_ratio_by_region": _ratios_by_region(gan.chroma_grain, real.chroma_grain, regions),
