@@ -1250,8 +1250,8 @@ def test_eye_ring_measure_is_the_log_albedo_profile_and_the_openings_spread():
     other = x.clone()
     other[:, 3:] = -other[:, 3:]
     torch.testing.assert_close(_eye_ring(other, None), got)
-    # the first ring 20 % darker in linear albedo: its three profile entries fall by log 0.8, and its contrast with the
-    # zone beyond; nothing else moves
+    # the first ring 20 % darker in linear albedo: its three profile entries fall by log 0.8, and so does its near band
+    # below the openings against that side's zone; nothing else moves
     m = decode_maps(GanImages.split(x), TINY)
     m.albedo[..., bands == 1] *= 0.8
     darker = _eye_ring(encode_maps(m, TINY).cat(), None)
@@ -1266,7 +1266,7 @@ def test_eye_ring_measure_is_the_log_albedo_profile_and_the_openings_spread():
     torch.testing.assert_close(moved[:, 0], torch.full((16, 3), math.log(0.8)), atol=2e-3, rtol=0)
     assert float(moved[:, 1:].abs().max()) < 2e-3
     # the openings 20 % darker: the profile's first row and their mean fall by log 0.8, their spread stays, and so do
-    # the contrasts
+    # the near bands against their zone
     m = decode_maps(GanImages.split(x), TINY)
     m.albedo[..., bands == 0] *= 0.8
     moved = _eye_ring(encode_maps(m, TINY).cat(), None) - got

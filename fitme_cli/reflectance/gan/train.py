@@ -317,7 +317,10 @@ class TrainSettings:
     # (``metrics.region_band_correlation``, ``_albedo_specular_link``), and its square. The data's pores and speckles are
     # one field in both maps (96 maps, mean over samples: neck 0.74, skin 0.61, forehead 0.69); at 308.28 kimg G_ema's
     # were 0.40 / 0.40 / 0.44 with a narrower spread between samples, which a judge told every G map by (docs/brdf_gan.md).
-    # The square holds that spread. Drift-style like the relief term (absolute). 0: off
+    # The square was to hold that spread; tried from 308.28 at weight 10 for 2.2 kimg, G met it by raising every
+    # sample's correlation past the data's mean instead (G_ema 310.47: skin 0.78, neck 0.81, brows 0.54 against 0.61,
+    # 0.74, 0.32; skin q10 0.70 against -0.09), so try it without the square or with a within-batch spread (the tone
+    # term's) before training on. Drift-style like the relief term (absolute). 0: off
     albedo_specular_link_weight: float = 0.0
     albedo_specular_link_beta: float = 0.99  # per-step decay of the running correlations
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
