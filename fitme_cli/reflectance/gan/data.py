@@ -243,10 +243,11 @@ def eye_ring_halves(resolution: int) -> torch.Tensor:
     """(2, R, R) uint8: ``eye_rings``' texels above the openings' mean row (0) and at or below it (1). In each half the
     three bands nearest the openings (0-2, 2-4 and 4-6 texels at 256^2) are labelled 0, 1, ... in order (one empty in
     that half is dropped) and the bands beyond them to 26 texels (the zone they sit in) the last label; 255
-    elsewhere, and all 255 in a half without a near band or a zone (the upper half below 32^2). ``metrics.ring_profile`` over each half is each near band against the zone just outside it on the same
-    side of the eye: the data's upper lid and its under-eye darkening differ (log albedo, the three near bands together
-    against the zone: -0.03 above, -0.07 below), and a ring profile over whole bands was met at 301.25 kimg by a lighter, peach upper lid and a darker
-    under-eye (docs/brdf_gan.md)."""
+    elsewhere, and all 255 in a half without a near band or a zone (the upper half below 32^2).
+    ``metrics.ring_profile`` over each half is each near band against the zone just outside it on the same side of the
+    eye: the data's upper lid and its under-eye darkening differ (log albedo, the three near bands together against the
+    zone: -0.03 above, -0.07 below), and a ring profile over whole bands was met at 301.25 kimg by a lighter, peach
+    upper lid and a darker under-eye (docs/brdf_gan.md)."""
     bands = eye_rings(resolution)
     k = int(bands[bands != 255].max())  # the far skin's label, the profile's reference in ``eye_rings``
     rows = torch.arange(resolution)[:, None].expand(resolution, resolution)
