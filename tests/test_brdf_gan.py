@@ -1500,10 +1500,11 @@ def test_specular_slope_weight_moves_the_fakes_slope_and_is_blind_to_the_albedo(
     _check_shifted_pull("specular_slope", lambda y, r: _specular_slope(y, r, TINY), regions, _tiny_data(), tmp_path, 0.15)
 
 
-def test_albedo_specular_link_is_the_grains_correlation_and_its_square_and_pulls(tmp_path):
+def test_albedo_specular_link_is_the_grains_correlation_and_its_batch_variance_and_pulls(tmp_path):
     """The albedo-specular-link measure is ``region_band_correlation`` of the decoded albedo's mean of r, g, b with the
-    decoded specular, then its square, blind to the normals; a specular that is the albedo's grain gives 1; with the
-    term G's correlation moves toward a target above and one below; refusals as every per-region term's."""
+    decoded specular, then each sample's squared deviation from the batch's mean times B / (B - 1), blind to the
+    normals; a specular that is the albedo's grain gives 1 and no spread; a batch of one is refused; with the term G's
+    correlation moves toward a target above and one below; refusals as every per-region term's."""
     from fitme_cli.reflectance.gan.metrics import region_band_correlation
     from fitme_cli.reflectance.gan.networks import decode_maps
     from fitme_cli.reflectance.gan.train import _albedo_specular_link
@@ -1513,16 +1514,127 @@ def test_albedo_specular_link_is_the_grains_correlation_and_its_square_and_pulls
     m = decode_maps(GanImages.split(x), TINY)
     got = _albedo_specular_link(x, regions, TINY)
     link = region_band_correlation(m.albedo.mean(1), m.specular, regions)[..., 0]
-    torch.testing.assert_close(got, torch.cat([link, link.square()], 1))
+    torch.testing.assert_close(got[:, :2], link)
+    torch.testing.assert_close(got[:, 2:].mean(0), link.var(0))  # the unbiased variance over the batch
     other = x.clone()
     other[:, 4:] = -other[:, 4:]
     torch.testing.assert_close(_albedo_specular_link(other, regions, TINY), got)
     same = decode_maps(GanImages.split(x), TINY)
     same.specular[:] = 0.02 + 0.1 * same.albedo.mean(1, keepdim=True)  # the albedo's grain, within the specular's range
-    torch.testing.assert_close(_albedo_specular_link(encode_maps(same, TINY).cat(), regions, TINY), torch.ones(3, 4),
-                               atol=2e-3, rtol=0)
+    torch.testing.assert_close(_albedo_specular_link(encode_maps(same, TINY).cat(), regions, TINY),
+                               torch.tensor([1.0, 1.0, 0.0, 0.0]).expand(3, 4), atol=2e-3, rtol=0)
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        _albedo_specular_link(x[:1], regions, TINY)
     _check_shifted_pull("albedo_specular_link", lambda y, r: _albedo_specular_link(y, r, TINY), regions, _tiny_data(),
                         tmp_path, 0.2)
+
+
+def test_hairline_edge_is_the_outline_coherence_and_its_batch_variance_and_pulls(tmp_path):
+    """The hairline-edge measure is ``metrics.hairline_edge_coherence`` of the decoded albedo over the layout's reach,
+    then each sample's squared deviation from the batch's mean times B / (B - 1), blind to the specular and normals; a
+    batch of one is refused; with the term G's measure moves toward a target above and one below."""
+    from fitme_cli.reflectance.gan.data import hairline_reach, hairline_references
+    from fitme_cli.reflectance.gan.metrics import hairline_edge_coherence
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _hairline_edge
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    got = _hairline_edge(x, regions)
+    v = hairline_edge_coherence(decode_albedo(x[:, :3]), hairline_reach(16), *hairline_references(16))
+    torch.testing.assert_close(got[:, 0], v)
+    torch.testing.assert_close(got[:, 1].mean(), v.var())
+    other = x.clone()
+    other[:, 3:] = -other[:, 3:]
+    torch.testing.assert_close(_hairline_edge(other, regions), got)
+    with pytest.raises(ValueError, match="_hairline_edge needs a batch of at least 2 samples"):
+        _hairline_edge(x[:1], regions)
+    _check_shifted_pull("hairline_edge", _hairline_edge, regions, _tiny_data(), tmp_path, 0.2)
+
+
+def test_hairline_specks_is_the_reachs_dark_speck_depth_and_pulls(tmp_path):
+    """The hairline-specks measure is ``metrics.dark_speck_depth`` of the decoded albedo over the layout's hairline band,
+    then over the scalp behind it, blind to the specular and normals; its loss is relative to the target floored at
+    ``_SPECK_FLOOR``; with the term G's measure moves toward a deeper target."""
+    from fitme_cli.reflectance.gan.data import hairline_references, hairline_zones
+    from fitme_cli.reflectance.gan.metrics import dark_speck_depth
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _SPECK_FLOOR, _hairline_specks, _speck_gap, speck_loss
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    got = _hairline_specks(x, regions)
+    zones = hairline_zones(16)
+    assert got.shape == (3, 2) and float(got.min()) >= 0
+    for j, zone in enumerate((1, 2)):
+        want = dark_speck_depth(decode_albedo(x[:, :3]), zones == zone, *hairline_references(16))
+        torch.testing.assert_close(got[:, j], want)
+    other = x.clone()
+    other[:, 3:] = -other[:, 3:]
+    torch.testing.assert_close(_hairline_specks(other, regions), got)
+    running, target = torch.tensor([0.003]), torch.tensor([0.001])
+    assert _speck_gap(running, target) == pytest.approx(2.0)
+    assert _speck_gap(running, torch.tensor([0.0])) == pytest.approx(0.003 / _SPECK_FLOOR)
+    d = torch.full((4, 1), 0.002, requires_grad=True)
+    speck_loss(d, running, target).backward()  # the gradient of |(running - target) / target|^2 through the batch
+    torch.testing.assert_close(d.grad, torch.full((4, 1), 2 * 2.0 / 0.001 / 4))
+    # the pull: a target 0.01 deeper than where G starts (its loss is relative, so a shift of 0.5 as for the
+    # absolute terms would be 2500 floors), against the same steps without the term
+    data = _tiny_data()
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    base, off, _ = _pulled("hairline_specks", 0.0, _hairline_specks, lambda b: b + 0.01, regions, data, z)
+    _, up, out = _pulled("hairline_specks", 1.0, _hairline_specks, lambda b: b + 0.01, regions, data, z)
+    assert float((up - base).mean()) > float((off - base).mean()) + 0.001, (base, off, up)
+    assert out[0]["hairline_specks_gap"] == pytest.approx(float((0.01 / (base + 0.01).clamp_min(_SPECK_FLOOR)).mean()),
+                                                          rel=0.3)
+    _assert_region_term_refusals("hairline_specks", data, tmp_path)
+
+
+def test_beard_bands_are_the_zones_log_bands_times_its_hair_share_and_pull(tmp_path):
+    """The beard-band measure is the beard zone's ``region_band_energy`` of the decoded albedo's log luminance (three
+    bands), times the sample's soft hair share of the zone, which carries no gradient; blind to the specular and
+    normals and to texels outside the zone; with the term G's bands move toward a target above and one below."""
+    from fitme_cli.reflectance.gan.data import beard_zone
+    from fitme_cli.reflectance.gan.metrics import region_band_energy, soft_hair_share
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _beard_bands
+
+    regions = _two_regions()
+    zone = beard_zone(16)
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    got = _beard_bands(x, regions)
+    albedo = decode_albedo(x[:, :3])
+    bands = region_band_energy(albedo.mean(1, keepdim=True).clamp_min(1e-3).log(),
+                               torch.where(zone, 0, 255).to(torch.uint8), 3)[:, 0, :, 0]
+    assert got.shape == (3, 3)
+    torch.testing.assert_close(got, soft_hair_share(albedo, zone)[:, None] * bands)
+    other = x.clone()
+    other[:, 3:] = -other[:, 3:]
+    torch.testing.assert_close(_beard_bands(other, regions), got)
+    # the hair share's gradient is not taken: the measure's gradient is the bands' times the (constant) share
+    y = x.clone().requires_grad_()
+    _beard_bands(y, regions)[:, 0].sum().backward()
+    y2 = x.clone().requires_grad_()
+    a2 = decode_albedo(y2[:, :3])
+    (soft_hair_share(decode_albedo(x[:, :3]), zone)[:, None] * region_band_energy(
+        a2.mean(1, keepdim=True).clamp_min(1e-3).log(), torch.where(zone, 0, 255).to(torch.uint8), 3)[:, 0, :, 0]
+     )[:, 0].sum().backward()
+    torch.testing.assert_close(y.grad, y2.grad)
+    # the pull, relative like the band term's: G's fresh tiny maps gain hair share (and so this measure) ~12-fold in
+    # these steps without the term, so the targets are far on either side: 50 times where G starts and a tenth
+    data = _tiny_data()
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def moved(weight, factor):
+        base, now, out = _pulled("beard_band", weight, _beard_bands, lambda b: b * factor, regions, data, z)
+        return float((now / base).mean()), out
+
+    off, _ = moved(0.0, 1.0)
+    up, l_up = moved(1.0, 50.0)
+    down, _ = moved(1.0, 0.1)
+    assert up > off * 1.2 and down < off / 1.2, (up, off, down)
+    assert l_up[0]["beard_band_gap"] == pytest.approx(49 / 50, abs=0.05)  # |b - 50 b| / 50 b, from the first batch
+    _assert_region_term_refusals("beard_band", data, tmp_path)
 
 
 def test_row_profile_matches_reference_known_values_gradients_and_bad_input():
@@ -2383,8 +2495,9 @@ def test_checkpoint_keeps_the_drift_terms_running_means(tmp_path):
 
 
 def test_checkpoint_drops_a_running_mean_that_measured_something_else(tmp_path):
-    """The tone term's running mean changed meaning (mean square -> within-batch variance, same shape): one saved
-    before (no version in the metadata: 1) is dropped on load, and kept when its version is the current one."""
+    """The tone and albedo-specular-link terms' running means changed meaning (mean square -> within-batch variance,
+    same shape): one saved before (no version in the metadata: 1) is dropped on load, and kept when its version is the
+    current one."""
     import json
 
     from safetensors import safe_open
@@ -2392,14 +2505,21 @@ def test_checkpoint_drops_a_running_mean_that_measured_something_else(tmp_path):
 
     from fitme_cli.reflectance.gan.train import _RUNNING_VERSIONS
 
-    state = new_state(TINY, TrainSettings(batch=4, kimg=1, tone_weight=0.1, band_weight=0.5))
-    state.running_tone, state.running_band = torch.rand(12), torch.rand(6)
+    state = new_state(TINY, TrainSettings(batch=4, kimg=1, tone_weight=0.1, band_weight=0.5,
+                                          albedo_specular_link_weight=1.0))
+    state.running_tone, state.running_band, state.running_albedo_specular_link = torch.rand(12), torch.rand(6), torch.rand(4)
     save_checkpoint(state, tmp_path / "new.safetensors")
     kept = load_checkpoint(tmp_path / "new.safetensors")
     assert torch.equal(kept.running_tone, state.running_tone) and torch.equal(kept.running_band, state.running_band)
+    assert torch.equal(kept.running_albedo_specular_link, state.running_albedo_specular_link)
     with safe_open(str(tmp_path / "new.safetensors"), "pt") as f:
         meta, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
-    assert json.loads(meta["running_versions"]) == _RUNNING_VERSIONS == {"running_tone": 2}
+    assert json.loads(meta["running_versions"]) == _RUNNING_VERSIONS == {"running_tone": 2,
+                                                                        "running_albedo_specular_link": 2}
+    meta["running_versions"] = json.dumps({"running_tone": 2})  # as the link's mean square was saved (2026-11-30)
+    save_file(tensors, str(tmp_path / "square.safetensors"), metadata=meta)
+    square = load_checkpoint(tmp_path / "square.safetensors")
+    assert square.running_albedo_specular_link is None and torch.equal(square.running_tone, state.running_tone)
     del meta["running_versions"]  # as every checkpoint before 2026-11-28 was saved
     save_file(tensors, str(tmp_path / "old.safetensors"), metadata=meta)
     old = load_checkpoint(tmp_path / "old.safetensors")
@@ -2921,6 +3041,122 @@ def test_soft_hairline_share_counts_hair_by_texture_or_colour():
         soft_hairline_share(torch.zeros(1, 4, 16, 16), reach, face, scalp)
 
 
+def test_hairline_edge_coherence_known_values_invariance_gradients_and_bad_input():
+    """On 32^2 maps, skin on the left and hair on the right: a straight edge gives 1, a gently curved one nearly 1, a
+    ragged one (each row's edge moved by up to 3 texels) much less; the colour test is the same as
+    ``soft_hairline_share``'s (one sample's value is ``orientation_coherence`` of it, weighted by its gradient over the
+    reach); a global scale of the albedo changes nothing; float64 gradients; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import hairline_edge_coherence, orientation_coherence
+
+    r = 32
+    face, scalp, reach = (torch.zeros(r, r, dtype=torch.bool) for _ in range(3))
+    face[:, :6], scalp[:, 26:], reach[:, 8:24] = True, True, True
+    cols = torch.arange(r, dtype=torch.float64)
+
+    def maps(edge):  # edge: (r,) column per row where the hair starts; the texel it crosses is part hair
+        cover = (cols[None, :] - edge[:, None] + 0.5).clamp(0, 1)
+        return (0.4 + (0.05 - 0.4) * cover)[None, None].expand(1, 3, r, r).clone()
+
+    def coherence(a, **kw):
+        return float(hairline_edge_coherence(a, reach, face, scalp, **kw)[0])
+
+    straight = maps(torch.full((r,), 16.0))
+    assert coherence(straight) == pytest.approx(1.0, abs=1e-6)
+    rows = torch.arange(r, dtype=torch.float64)
+    curved = maps(12 + 8 * torch.sin(math.pi * rows / (2 * r)))  # a quarter sine over the map's height
+    assert coherence(curved) > 0.85
+    ragged_edge = 16 + torch.randint(-3, 4, (r,), generator=torch.Generator().manual_seed(0)).double()
+    ragged = maps(ragged_edge)
+    assert coherence(ragged) < 0.6
+    assert coherence(ragged * 1.7) == pytest.approx(coherence(ragged), abs=1e-9)  # log distances: a scale cancels
+    # the known composition: the colour test's coherence, weighted by its central-difference gradient over the reach
+    lum = ragged.mean(1)[0].log()
+    f, c = lum[face].mean(), (lum[scalp].mean() - lum[face].mean()).abs().clamp_min(0.3)
+    test = ((lum - f).abs() / c).clamp(max=1)
+    gx, gy = torch.zeros(r, r, dtype=torch.float64), torch.zeros(r, r, dtype=torch.float64)
+    gx[:, 1:-1], gy[1:-1] = test[:, 2:] - test[:, :-2], test[2:] - test[:-2]
+    w = (gx.square() + gy.square()).sqrt() * reach
+    expected = float((orientation_coherence(test[None], 2.5)[0] * w).sum() / w.sum())
+    assert coherence(ragged) == pytest.approx(expected, abs=1e-9)
+    assert coherence(ragged, sigma=1.0) != pytest.approx(coherence(ragged), abs=1e-3)
+    # gradients: the weights carry none (G cannot move the edge's strength to where it is smooth), so the gradient is
+    # that of the composition with the weights held, which float64 gradcheck confirms numerically
+    base = 0.1 + 0.2 * torch.rand(1, 3, r, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+
+    def strip(t):
+        m = ragged.clone()
+        m[..., 14:18] = t
+        return m
+
+    def held(t):  # the composition above with the weights of ``base``
+        lum_t = strip(t).mean(1).log()
+        test_t = ((lum_t - f) / c).abs().clamp(max=1)
+        return (orientation_coherence(test_t, 2.5) * w_base).sum() / w_base.sum()
+
+    with torch.no_grad():
+        lum_b = strip(base).mean(1)[0].log()
+        t_b = ((lum_b - f) / c).abs().clamp(max=1)
+        gx_b, gy_b = torch.zeros_like(t_b), torch.zeros_like(t_b)
+        gx_b[:, 1:-1], gy_b[1:-1] = t_b[:, 2:] - t_b[:, :-2], t_b[2:] - t_b[:-2]
+        w_base = (gx_b.square() + gy_b.square()).sqrt() * reach
+    t1, t2 = base.clone().requires_grad_(), base.clone().requires_grad_()
+    hairline_edge_coherence(strip(t1), reach, face, scalp).sum().backward()
+    held(t2).backward()
+    assert float(t1.grad.abs().sum()) > 0
+    torch.testing.assert_close(t1.grad, t2.grad, rtol=1e-9, atol=1e-12)
+    assert torch.autograd.gradcheck(held, (base.clone().requires_grad_(),))
+    with pytest.raises(ValueError, match=r"expected sigma > 0 and maps wider than 6 sigma, got sigma 6.0"):
+        hairline_edge_coherence(straight, reach, face, scalp, sigma=6.0)
+    with pytest.raises(ValueError, match=r"bool scalp mask like the reach \(32, 32\), got \(8, 8\)"):
+        hairline_edge_coherence(straight, reach, face, scalp[:8, :8])
+    with pytest.raises(ValueError, match="min_contrast must be finite and > 0, got 0.0"):
+        hairline_edge_coherence(straight, reach, face, scalp, min_contrast=0.0)
+    with pytest.raises(ValueError, match=r"expected float \(N, 3, R, R\) albedo"):
+        hairline_edge_coherence(straight[:, :2], reach, face, scalp)
+
+
+def test_dark_speck_depth_matches_reference_known_values_gradients_and_bad_input():
+    """The mean over the zone of how far each texel's log luminance falls below the darker of the face's and scalp's
+    q quantiles; a speck darker than both counts by its depth, one between them or above not at all; the quantiles
+    carry no gradient; float64 gradients; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import dark_speck_depth
+
+    r = 16
+    face, scalp, zone = (torch.zeros(r, r, dtype=torch.bool) for _ in range(3))
+    face[:, :4], scalp[:, 12:], zone[:, 6:10] = True, True, True
+    g = torch.Generator().manual_seed(0)
+    a = 0.05 + 0.4 * torch.rand(2, 3, r, r, dtype=torch.float64, generator=g)
+    got = dark_speck_depth(a, zone, face, scalp)
+    for i in range(2):  # loop reference with numpy's quantiles
+        lum = np.log(a[i].mean(0).numpy())
+        t = min(np.quantile(lum[face.numpy()], 0.01), np.quantile(lum[scalp.numpy()], 0.01))
+        assert float(got[i]) == pytest.approx(np.maximum(t - lum[zone.numpy()], 0).mean(), rel=1e-9, abs=1e-12)
+    flat = torch.full((1, 3, r, r), 0.3, dtype=torch.float64)
+    flat[..., :4], flat[..., 12:] = 0.4, 0.1  # skin, hair; the zone in between: no speck
+    assert float(dark_speck_depth(flat, zone, face, scalp)[0]) == 0.0
+    speck = flat.clone()
+    speck[0, :, 7, 7] = 0.1 * math.exp(-0.5)  # half a log unit below the hair (the darker reference)
+    assert float(dark_speck_depth(speck, zone, face, scalp)[0]) == pytest.approx(0.5 / 64, rel=1e-9)
+    x = speck.clone().requires_grad_()
+    dark_speck_depth(x, zone, face, scalp).sum().backward()
+    assert bool((x.grad[..., :4] == 0).all() and (x.grad[..., 12:] == 0).all())  # the references: no gradient
+    assert float(x.grad[0, 0, 7, 7]) < 0 and int((x.grad != 0).sum()) == 3  # only the speck, lightened
+    base = 0.05 + 0.1 * torch.rand(1, 3, r, 4, dtype=torch.float64, generator=g)
+
+    def of_zone(t):
+        m = flat.clone()
+        m[..., 6:10] = t
+        return dark_speck_depth(m, zone, face, scalp)
+
+    assert torch.autograd.gradcheck(of_zone, (base.requires_grad_(),))
+    with pytest.raises(ValueError, match=r"q must be in \(0, 1\), got 1.0"):
+        dark_speck_depth(flat, zone, face, scalp, q=1.0)
+    with pytest.raises(ValueError, match=r"expected a non-empty \(R, R\) bool face mask"):
+        dark_speck_depth(flat, zone, torch.zeros_like(face), scalp)
+    with pytest.raises(ValueError, match=r"expected float \(N, 3, R, R\) albedo"):
+        dark_speck_depth(flat[:, :1], zone, face, scalp)
+
+
 def test_hairline_reach_is_the_hairline_band_and_the_scalp_behind_it():
     """And ``hairline_references``: the face side of the band, and the scalp well behind the reach."""
     from fitme_cli.reflectance.gan.data import (hairline_band, hairline_reach, hairline_references, hairline_zones,
@@ -3006,6 +3242,20 @@ def test_blind_rounds_hide_eight_of_each_and_score_counts_hits(tmp_path):
     ours = _triplets(GanImages.split(data.float()), G)
     first_data = next(j for j in range(8) if key[f"0-{j}"] == "data")
     assert any(np.array_equal(rows[first_data][:, 20:], o[:, 20:]) for o in ours)  # right of the number
+    # no data triplet shows twice: with each sample's normals x made its own (the normals' columns, right of any
+    # two-digit number), the 16 data rows of the two rounds are the 16 data samples, each once
+    marked = data.clone()
+    marked[:, 4] = torch.linspace(-0.6, 0.6, 16)[:, None, None]
+    mpaths = make_rounds(G, marked, tmp_path / "marked", rounds=2, seed=4)
+    mkey = json.loads((tmp_path / "marked" / "key.json").read_text())
+    sheets = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in mpaths]
+    mine = _triplets(GanImages.split(marked.float()), G)
+    shown = [[i for i, o in enumerate(mine)
+              if np.array_equal(sheets[2 * r + k // 8][2 + 20 * (k % 8): 18 + 20 * (k % 8), 36:], o[:, 36:])]
+             for r in (0, 1) for k in range(16) if mkey[f"{r}-{k}"] == "data"]
+    assert sorted(i for m in shown for i in m) == list(range(16))  # each row one sample, every sample once
+    with pytest.raises(ValueError, match=r"expected data of shape \(N >= 24, 7, 16, 16\)"):
+        make_rounds(G, data, tmp_path / "three", rounds=3)  # 24 data triplets needed, 16 given
     right = [k for k, v in key.items() if v == "G"]
     s = score(key, right)
     assert (s.correct, s.total, s.missed) == (32, 32, ()) and s.p_value == 2.0**-32
@@ -3032,8 +3282,8 @@ def test_blind_rounds_hide_eight_of_each_and_score_counts_hits(tmp_path):
     assert blind_main(["score", str(tmp_path / "nowhere"), str(tmp_path / "guesses.json")]) == 2
     assert blind_main(["make", str(tmp_path / "no_models"), str(tmp_path), "-o", str(tmp_path / "m")]) == 2
     assert blind_main(["score", str(tmp_path), str(tmp_path / "guesses.json"), "--card", str(tmp_path / "no_card.json")]) == 2
-    with pytest.raises(ValueError, match=r"expected data of shape \(N >= 8, 7, 16, 16\)"):
-        make_rounds(G, data[:4], tmp_path)
+    with pytest.raises(ValueError, match=r"expected data of shape \(N >= 16, 7, 16, 16\), got \(4, 7, 16, 16\)"):
+        make_rounds(G, data[:4], tmp_path)  # two rounds of 8 data triplets each
     # G's specular is drawn from the 8 bits the data's files hold: every grey level of a G row's specular panel is one
     # a stored data specular can show (x3, sRGB); unquantized, G's had more levels than the data's, a tell of its own
     from fitme_cli.ops.srgb import linear_to_srgb
@@ -3055,15 +3305,15 @@ def test_blind_reference_sheets_show_data_the_rounds_do_not(tmp_path):
     from fitme_cli.reflectance.gan.blind import _triplets, main as blind_main, make_rounds
 
     G = Generator(TINY).eval()
-    data = _tiny_data(n=24)
-    data[:, :3] += torch.linspace(-0.5, 0.5, 24).view(24, 1, 1, 1)  # network space: ~5 sRGB levels apart
+    data = _tiny_data(n=32)  # 16 for the reference, 8 per round
+    data[:, :3] += torch.linspace(-0.5, 0.5, 32).view(32, 1, 1, 1)  # network space: ~4 sRGB levels apart
     judge = tmp_path / "judge"
     paths = make_rounds(G, data, judge, rounds=2, seed=5, reference=16, key_path=tmp_path / "key.json")
     assert [p.name for p in paths[4:]] == ["reference_0.png", "reference_1.png"]
     assert sorted(p.name for p in judge.iterdir()) == sorted(p.name for p in paths)  # no key beside the pictures
     key = json.loads((tmp_path / "key.json").read_text())
     ours = _triplets(GanImages.split(data.float()), G)
-    assert len({o.tobytes() for o in ours}) == 24  # every sample draws differently, so rows name their sample
+    assert len({o.tobytes() for o in ours}) == 32  # every sample draws differently, so rows name their sample
 
     def rows(path):
         img = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
@@ -3081,11 +3331,11 @@ def test_blind_reference_sheets_show_data_the_rounds_do_not(tmp_path):
         for j, row in enumerate(rows(p)):
             if key[f"{rd}-{half * 8 + j}"] == "data":
                 in_rounds.add(sample(row, top=4))  # above the number
-    assert None not in in_rounds and len(in_rounds) >= 8 and not in_rounds & shown
+    assert None not in in_rounds and len(in_rounds) == 16 and not in_rounds & shown  # each data triplet once
     (tmp_path / "guesses.json").write_text(json.dumps({"G": [k for k, v in key.items() if v == "G"]}))
     assert blind_main(["score", str(tmp_path / "key.json"), str(tmp_path / "guesses.json")]) == 0  # a key file
-    with pytest.raises(ValueError, match=r"expected data of shape \(N >= 24, 7, 16, 16\)"):
-        make_rounds(G, data[:20], tmp_path / "small", reference=16)
+    with pytest.raises(ValueError, match=r"expected data of shape \(N >= 32, 7, 16, 16\), got \(31, 7, 16, 16\)"):
+        make_rounds(G, data[:31], tmp_path / "small", reference=16)
     with pytest.raises(ValueError, match="expected reference >= 0, got -1"):
         make_rounds(G, data, tmp_path / "neg", reference=-1)
     with pytest.raises(ValueError, match="expected rounds >= 1, got 0"):
@@ -3227,7 +3477,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -3278,6 +3528,11 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "forehead_rows_gap" not in lines[0]
     assert state.train.albedo_specular_link_weight == 3.0 and lines[-1]["albedo_specular_link_gap"] > 0
     assert "albedo_specular_link_gap" not in lines[0]
+    assert state.train.hairline_edge_weight == 2.0 and lines[-1]["hairline_edge_gap"] > 0
+    assert "hairline_edge_gap" not in lines[0]
+    assert state.train.hairline_specks_weight == 0.1 and lines[-1]["hairline_specks_gap"] >= 0
+    assert "hairline_specks_gap" not in lines[0]
+    assert state.train.beard_band_weight == 0.5 and lines[-1]["beard_band_gap"] > 0 and "beard_band_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -3445,7 +3700,9 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "chroma_texel_grain_ratio_by_region", "specular_link_by_region", "specular_spectrum_tv_by_region",
                       "texel_tails_permille_by_region", "eye_ring_log_albedo", "edge_sharpness_by_region",
                       "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
-                      "eye_near_bands_by_half", "albedo_specular_link_by_region"}
+                      "eye_near_bands_by_half", "albedo_specular_link_by_region",
+                      "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
+                      "beard_band_rms_bearded"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -3530,6 +3787,18 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert set(grain) == set(link) and all(list(v) == ["data", "gan"] for v in grain.values())
     assert all(len(c) == 3 and all(-1 <= t <= 1 for t in c) and c[1] <= c[0] <= c[2] for v in grain.values()
                for c in v.values())
+    edge = m["hairline_edge_coherence"]  # per side: mean and sd over samples, the 10 / 50 / 90 % quantiles
+    assert list(edge) == ["data", "gan"] and all(list(v) == ["mean_sd", "q10_q50_q90"] for v in edge.values())
+    assert all(0 <= v["mean_sd"][0] <= 1 and v["mean_sd"][1] >= 0 and 0 <= v["q10_q50_q90"][0] <= v["q10_q50_q90"][1]
+               <= v["q10_q50_q90"][2] <= 1 for v in edge.values())
+    assert edge["data"]["q10_q50_q90"][2] < 0.9, edge  # the data's outlines are ragged, not a smooth curve
+    specks = m["hairline_dark_speck_depth_x1000"]  # per side and zone: the mean over samples and the 90 % quantile
+    assert list(specks) == ["data", "gan"] and all(list(v) == ["band", "behind"] for v in specks.values())
+    assert all(len(q) == 2 and min(q) >= 0 for v in specks.values() for q in v.values())
+    beards = m["beard_band_rms_bearded"]  # per side: how many samples are bearded, their mean band RMS (or None)
+    assert list(beards) == ["data", "gan"] and all(list(v) == ["samples", "fine_mid_coarse"] for v in beards.values())
+    assert all((v["fine_mid_coarse"] is None) == (v["samples"] == 0) for v in beards.values())
+    assert all(len(v["fine_mid_coarse"]) == 3 and min(v["fine_mid_coarse"]) > 0 for v in beards.values() if v["samples"])
     rows = m["forehead_row_log_chroma"]  # per side and axis: the mean profile's peak, the per-sample peaks' quantiles
     assert list(rows) == ["data", "gan"] and all(list(v) == ["mean_profile_max_abs", "sample_max_abs_q50_q90"]
                                                  for v in rows.values())

@@ -50,7 +50,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "tone_band_weight", "chroma_band_weight", "specular_band_weight", "grain_weight", "lattice_weight",
                 "chroma_grain_weight", "specular_link_weight", "specular_spectrum_weight", "texel_tail_weight",
                 "eye_ring_weight", "edge_sharpness_weight", "specular_slope_weight", "forehead_rows_weight",
-                "albedo_specular_link_weight",
+                "albedo_specular_link_weight", "hairline_edge_weight", "hairline_specks_weight",
+                "beard_band_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -194,9 +195,19 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
                    "its absolute value) to the data's flat one, against a coloured band across the forehead (not in the "
                    "paper; may change on --resume). [0]")
 @click.option("--albedo-specular-link-weight", type=click.FloatRange(min=0),
-              help="Pull each region's correlation of G's albedo grain with its specular grain, and its square, to the "
-                   "data's, whose pores and speckles are one field in both maps (not in the paper; may change on "
-                   "--resume). [0]")
+              help="Pull each region's correlation of G's albedo grain with its specular grain, and its spread "
+                   "between samples, to the data's, whose pores and speckles are one field in both maps (not in the "
+                   "paper; may change on --resume). [0]")
+@click.option("--hairline-edge-weight", type=click.FloatRange(min=0),
+              help="Pull how smooth G's hairline outline runs (the orientation coherence of its edge), and its spread "
+                   "between samples, to the data's ragged outlines (not in the paper; may change on --resume). [0]")
+@click.option("--hairline-specks-weight", type=click.FloatRange(min=0),
+              help="Pull how far texels along G's hairline fall below the darker of its skin and hair (dark specks) "
+                   "to the data's, relative to it (not in the paper; may change on --resume). [0]")
+@click.option("--beard-band-weight", type=click.FloatRange(min=0),
+              help="Pull the fine texture of G's beards (the log luminance's three finest bands over the beard zone, "
+                   "weighted by each face's hair share there) to the data's, each band relative to its target (not in "
+                   "the paper; may change on --resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

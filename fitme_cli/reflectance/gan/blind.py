@@ -61,8 +61,8 @@ def _triplets(imgs: GanImages, G: Generator) -> np.ndarray:
 def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2, seed: int | None = None,
                 reference: int = 0, key_path: Path | None = None) -> list[Path]:
     """Write ``roundR_a.png`` / ``roundR_b.png`` (8 numbered triplets each) into ``out_dir`` and the key to
-    ``key_path`` (default ``out_dir / "key.json"``). ``data``: (N, 7, R, R) network space, N >= 8 + ``reference``
-    (``data.load_dataset``); G samples at psi 1 with random noise, as the card does. ``seed`` None draws one from
+    ``key_path`` (default ``out_dir / "key.json"``). ``data``: (N, 7, R, R) network space, N >= 8 * ``rounds`` +
+    ``reference`` (``data.load_dataset``; no data triplet shows twice); G samples at psi 1 with random noise, as the card does. ``seed`` None draws one from
     the OS, so the judge cannot know the order. ``reference`` > 0 also writes ``reference_0.png``, ``_1.png``, ...
     (8 unnumbered rows each): that many data triplets that no round shows. Returns the rounds' paths, then the
     reference sheets'."""
@@ -75,8 +75,9 @@ def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2
         raise ValueError(f"expected rounds >= 1, got {rounds}")
     if reference < 0:
         raise ValueError(f"expected reference >= 0, got {reference}")
-    if data.ndim != 4 or data.shape[1:] != (7, r, r) or len(data) < _PER_SIDE + reference:
-        raise ValueError(f"expected data of shape (N >= {_PER_SIDE + reference}, 7, {r}, {r}), got {tuple(data.shape)}")
+    need = _PER_SIDE * rounds + reference
+    if data.ndim != 4 or data.shape[1:] != (7, r, r) or len(data) < need:
+        raise ValueError(f"expected data of shape (N >= {need}, 7, {r}, {r}), got {tuple(data.shape)}")
     rng = np.random.default_rng(secrets.randbits(32) if seed is None else seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -84,11 +85,14 @@ def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2
     if reference:  # drawn first, and kept out of the rounds
         pool = rng.permutation(len(data))
         shown, pool = pool[:reference], pool[reference:]
+    # every round's data triplets at once: drawn per round, one sample could show in two rounds (a judge saw the same
+    # triplet twice, 2026-11-30)
+    real_idx = rng.choice(pool, _PER_SIDE * rounds, replace=False).reshape(rounds, _PER_SIDE)
     key, paths = {}, []
     for rd in range(rounds):
         with torch.no_grad():
             fake = _triplets(G(sample_z(_PER_SIDE, G.settings.z_dim, int(rng.integers(1 << 30))), noise_mode="random"), G)
-        real = _triplets(GanImages.split(data[rng.choice(pool, _PER_SIDE, replace=False)].float()), G)
+        real = _triplets(GanImages.split(data[real_idx[rd]].float()), G)
         items = [("G", f) for f in fake] + [("data", d) for d in real]
         order = rng.permutation(len(items))
         for half in range(2):

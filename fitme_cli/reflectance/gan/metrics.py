@@ -47,7 +47,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
            "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
-           "region_edge_sharpness", "region_slope_link", "row_profile"]
+           "region_edge_sharpness", "region_slope_link", "row_profile", "hairline_edge_coherence",
+           "dark_speck_depth"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -346,19 +347,78 @@ def soft_hairline_share(albedo: torch.Tensor, reach: torch.Tensor, face: torch.T
     between the two means (clamped) counted a rim darker or lighter than the skin, away from the hair, as skin, and
     G drew such rims too (docs/brdf_gan.md). Here only untextured, skin-coloured texels lower the share."""
     _check_hair_share(albedo, reach, window)
+    _check_references(reach, face, scalp)
+    _check_min_contrast(min_contrast)
+    t = _soft_hair(albedo, window, threshold, softness)[:, reach]
+    a = _hair_colour(albedo, face, scalp, min_contrast)[:, reach]
+    return (1 - (1 - a) * (1 - t)).mean(1)
+
+
+def _check_references(reach: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor) -> None:
     for name, m in (("face", face), ("scalp", scalp)):
         if m.shape != reach.shape or m.dtype != torch.bool or not bool(m.any()):
             raise ValueError(f"expected a non-empty (R, R) bool {name} mask like the reach {tuple(reach.shape)}, got "
                              f"{tuple(m.shape)} {m.dtype} with {int(m.sum()) if m.dtype == torch.bool else '?'} texels")
+
+
+def _check_min_contrast(min_contrast: float) -> None:
     if not (min_contrast > 0 and math.isfinite(min_contrast)):
         raise ValueError(f"min_contrast must be finite and > 0, got {min_contrast}")
-    t = _soft_hair(albedo, window, threshold, softness)[:, reach]
+
+
+def _hair_colour(albedo: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor, min_contrast: float) -> torch.Tensor:
+    """(N, 3, R, R) linear albedo -> (N, R, R) in [0, 1]: ``soft_hairline_share``'s colour test per texel, the log
+    luminance's distance from the mean over ``face`` over the scalp mean's, the means without gradient."""
     lum = _log_luminance(albedo)
     with torch.no_grad():
         f = lum[:, face].mean(1)
         c = (lum[:, scalp].mean(1) - f).abs().clamp_min(min_contrast)
-    a = ((lum[:, reach] - f[:, None]).abs() / c[:, None]).clamp(max=1)
-    return (1 - (1 - a) * (1 - t)).mean(1)
+    return ((lum - f[:, None, None]).abs() / c[:, None, None]).clamp(max=1)
+
+
+def hairline_edge_coherence(albedo: torch.Tensor, reach: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor,
+                            sigma: float = 2.5, min_contrast: float = 0.3) -> torch.Tensor:
+    """albedo: (N, 3, R, R) linear, [0, 1]; reach, face, scalp: (R, R) bool as ``soft_hairline_share``'s, R > 6 sigma
+    -> (N,) float in [0, 1]: per sample, how smooth the hairline's outline runs. The ``orientation_coherence`` (window
+    ``sigma`` texels) of the colour test a (``_hair_colour``: 0 skin, 1 hair), averaged over ``reach`` with weights
+    |grad a| (central differences, no gradient through them), so that the edge between skin and hair counts, not the
+    flat skin or hair beside it. A straight or gently curved edge gives ~1; a ragged one, whose gradients turn from
+    texel to texel, less.
+    The data's outline is ragged (``fitme dataset``: the hairline's offset noise down to 0.002 UV at 250 cycles);
+    G_ema's at 308.28 kimg was a smooth egg on dark hair, a judge's first tell. At 256^2, 128 data maps against 128
+    G_ema maps: mean 0.475 / 0.537, sd 0.069 / 0.129, the two distributions' KS distance 0.44 (two halves of the
+    data: 0.12); G's smoothest outlines 0.78-0.80, the data's 0.57-0.58, both on dark hair (docs/brdf_gan.md)."""
+    _check_hair_share(albedo, reach, 1)
+    _check_references(reach, face, scalp)
+    _check_min_contrast(min_contrast)
+    a = _hair_colour(albedo, face, scalp, min_contrast)
+    coherence = orientation_coherence(a, sigma)
+    with torch.no_grad():
+        g = a[:, None]
+        gx = F.pad(g[..., :, 2:] - g[..., :, :-2], (1, 1, 0, 0))
+        gy = F.pad(g[..., 2:, :] - g[..., :-2, :], (0, 0, 1, 1))
+        w = (gx.square() + gy.square()).sqrt()[:, 0] * reach
+    return (coherence * w).flatten(1).sum(1) / w.flatten(1).sum(1).clamp_min(1e-12)
+
+
+def dark_speck_depth(albedo: torch.Tensor, zone: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor,
+                     q: float = 0.01) -> torch.Tensor:
+    """albedo: (N, 3, R, R) linear, [0, 1]; zone, face, scalp: (R, R) bool (e.g. the hairline band of
+    ``data.hairline_zones``, and ``data.hairline_references``) -> (N,) float >= 0, log luminance units: per sample, the
+    mean over ``zone`` of how far each texel's log luminance falls below the darker of the face's and the scalp's ``q``
+    quantiles (0 above it). The quantiles carry no gradient: a texel darker than nearly all of the sample's skin and hair
+    pulls itself up, not the threshold down.
+    G_ema's hairline at 308.28 kimg had dark specks along it, darker than its hair and its skin (a judge's tell); the
+    data's has next to none. At 256^2 over the hairline band, 128 maps each: data 0.15e-3 (q90 0.38e-3), G_ema 5.7e-3
+    (q90 11e-3); over the scalp just behind it 1.45e-3 against 11.4e-3 (docs/brdf_gan.md)."""
+    _check_hair_share(albedo, zone, 1)
+    _check_references(zone, face, scalp)
+    if not 0 < q < 1:
+        raise ValueError(f"q must be in (0, 1), got {q}")
+    lum = _log_luminance(albedo)
+    with torch.no_grad():
+        t = torch.minimum(torch.quantile(lum[:, face], q, dim=1), torch.quantile(lum[:, scalp], q, dim=1))
+    return (t[:, None] - lum[:, zone]).clamp_min(0).mean(1)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

@@ -15,14 +15,16 @@ import numpy as np
 import torch
 
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, brow_edges, eye_openings,
-                   eye_ring_halves, eye_rings, hairline_band, hairline_zones, load_dataset, load_regions, split_sides)
+                   eye_ring_halves, eye_rings, hairline_band, hairline_reach, hairline_references, hairline_zones,
+                   load_dataset, load_regions, split_sides)
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_region, feature_parts, frechet_distance, gamut_excess,
                       hair_share, interpolation_smoothness, log_chroma, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief, region_texel_grain,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence, texel_lattice, LATTICE_PARTS,
                       region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
-                      ring_profile, row_profile, region_band_correlation)
+                      ring_profile, row_profile, region_band_correlation, hairline_edge_coherence,
+                      dark_speck_depth)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import copy_generator, load_checkpoint
@@ -107,6 +109,11 @@ class _Side:
     # (N, K, 2) per sample ``metrics.row_profile`` of the albedo's ``metrics.log_chroma`` over the forehead's K rows (the
     # hairline band carved out)
     forehead_rows: torch.Tensor
+    hairline_edge: torch.Tensor  # (N,) per sample ``metrics.hairline_edge_coherence`` over ``data.hairline_reach``
+    # (N, 2) per sample ``metrics.dark_speck_depth`` over the hairline band, then over the scalp behind it
+    # (``data.hairline_zones`` 1 and 2)
+    hairline_specks: torch.Tensor
+    beard_bands: torch.Tensor  # (N, 3) per sample, the log luminance's three finest band RMS over ``data.beard_zone``
     # (2 * n, 3) mean over samples, log linear albedo: ``metrics.ring_profile`` over each half of
     # ``data.eye_ring_halves`` (the near bands above the openings, then below; n in all), then its absolute value
     eye_halves: torch.Tensor
@@ -114,7 +121,7 @@ class _Side:
 
 # the ``_Side`` fields ``_measure`` keeps per sample
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows",
-               "albedo_specular_link")
+               "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -185,6 +192,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
 
     forehead = edges == REGIONS.index("forehead")  # the hairline band carved out, as the forehead-rows term's
     halves = eye_ring_halves(regions.shape[0])
+    hairline = (hairline_reach(regions.shape[0]), *hairline_references(regions.shape[0]))
+    beard_labels = torch.where(beard, 0, 255).to(torch.uint8)
     st = _Stats(mapped)
     fs, cm, cr = [], [], []
     # each per-batch measure under its ``_Side`` field's name; those in ``_PER_SAMPLE`` are kept per sample, the
@@ -213,6 +222,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "moments": region_moments(x[:, :3], features),
             "feature_bands": region_band_energy(x[:, :3], features).mean(3),
             "beard": hair_share(x[:, :3], beard),
+            "beard_bands": region_band_energy(x[:, :3].mean(1, keepdim=True).clamp_min(1e-3).log(),
+                                              beard_labels)[:, 0, :, 0],
             "chroma_bands": region_band_energy(chroma, regions).mean(3),
             "specular_bands": region_band_energy(x[:, 3:4], regions)[..., 0],
             "texel_grain": region_texel_grain(grain_maps, regions),
@@ -221,6 +232,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "specular_slope": region_slope_link(x[:, 3:4], x[:, 4:7], regions),
             "albedo_specular_link": region_band_correlation(x[:, :3].mean(1), x[:, 3:4], regions)[..., 0],
             "forehead_rows": row_profile(chroma, forehead),
+            "hairline_edge": hairline_edge_coherence(x[:, :3], *hairline),
+            "hairline_specks": torch.stack([dark_speck_depth(x[:, :3], zones == z, *hairline[1:]) for z in (1, 2)], 1),
             "lattice": texel_lattice(net),
             "specular_spectra": region_spectrum(x[:, 3], regions),
             "texel_tails": region_texel_tails(grain_maps[:, :2], regions),
@@ -279,6 +292,14 @@ def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
     for i in range(n):
         w = G.ws(ends[2 * i : 2 * i + 2], truncation_psi)
         yield w[:1] + t * (w[1:] - w[:1])
+
+
+def _beard_bands_row(bands: torch.Tensor, share: torch.Tensor) -> dict:
+    """(N, 3) ``_Side.beard_bands``, (N,) ``metrics.hair_share`` of the beard zone -> the samples at least 0.6 hair:
+    their count and their mean band RMS (None without any)."""
+    bearded = share >= 0.6
+    mean = [round(float(v), 3) for v in bands[bearded].double().mean(0)] if bool(bearded.any()) else None
+    return {"samples": int(bearded.sum()), "fine_mid_coarse": mean}
 
 
 def _beard_shares(share: torch.Tensor) -> dict:
@@ -417,6 +438,20 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                        *_quantiles(m.albedo_specular_link[:, j], (0.1, 0.9))]
                                 for side, m in (("data", real), ("gan", gan))}
             for j, lab in enumerate(region_labels(regions))},
+        # a smooth outline where the data's hairline is ragged (the 308.28 kimg judge N): per sample, the hairline's
+        # edge coherence (``metrics.hairline_edge_coherence``), its mean, standard deviation and 10 / 50 / 90 % quantiles
+        "hairline_edge_coherence": {side: {"mean_sd": [round(float(m.hairline_edge.double().mean()), 3),
+                                                       round(float(m.hairline_edge.double().std()), 3)],
+                                           "q10_q50_q90": _quantiles(m.hairline_edge, (0.1, 0.5, 0.9))}
+                                    for side, m in (("data", real), ("gan", gan))},
+        # dark specks along the hairline (the 308.28 kimg judge N): per sample, how far the reach's texels fall below the
+        # darker of the skin's and the hair's 1 % quantile (``metrics.dark_speck_depth``, log luminance, x 1000), over
+        # the hairline band and over the scalp behind it: the mean over samples and the 90 % quantile
+        "hairline_dark_speck_depth_x1000": {
+            side: {zone: [round(1000 * float(m.hairline_specks[:, j].double().mean()), 3),
+                          *_quantiles(1000 * m.hairline_specks[:, j].double(), (0.9,))]
+                   for j, zone in enumerate(("band", "behind"))}
+            for side, m in (("data", real), ("gan", gan))},
         # colour fringes and coloured rim texels (the 267.35 kimg judges): per region, G's single-texel grain of the
         # albedo's log chromaticity (red-green, yellow-blue) over the data's
         "chroma_texel_grain_ratio_by_region": _ratios_by_region(gan.chroma_grain, real.chroma_grain, regions),
@@ -427,6 +462,10 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # beards are there or not in the data, and a G can lose them while every mean above holds (docs/brdf_gan.md):
         # per sample, the share of the beard zone that reads as hair (``metrics.hair_share``)
         "beard_hair_share": {"data": _beard_shares(real.beard), "gan": _beard_shares(gan.beard)},
+        # blurred, blotchy beards (the 308.28 kimg judge N): on the samples whose beard zone is at least 0.6 hair, the
+        # mean RMS of the log luminance's three finest bands there (finest first), and how many samples
+        "beard_band_rms_bearded": {side: _beard_bands_row(m.beard_bands, m.beard)
+                                   for side, m in (("data", real), ("gan", gan))},
         # a left and a right field of hair meeting in a line down the crown (the 176.50 kimg person test's first tell):
         # the mean direction across the crown, column bin by bin (``metrics.crown_flow``)
         "crown_flow": None if real.crown is None else _crown(gan.crown, real.crown),
