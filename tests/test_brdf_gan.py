@@ -3157,6 +3157,30 @@ def test_dark_speck_depth_matches_reference_known_values_gradients_and_bad_input
         dark_speck_depth(flat[:, :1], zone, face, scalp)
 
 
+def test_nyquist_log_ratio_known_values_gradients_and_bad_input():
+    """White noise ~0; a texel checkerboard over faint noise far above; a low-frequency field far below; per channel;
+    a scale and an offset change nothing; float64 gradients; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import nyquist_log_ratio
+
+    g = torch.Generator().manual_seed(0)
+    white = torch.randn(16, 1, 64, 64, generator=g, dtype=torch.float64)
+    assert abs(float(nyquist_log_ratio(white).mean())) < 0.15
+    yy, xx = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    checker = ((yy + xx) % 2).double()[None, None] * 0.1 + 0.01 * white
+    low = white
+    for dim in (2, 3):  # a [1, 2, 1] / 4 binomial blur along each axis: its response is 0 at Nyquist
+        low = (low.roll(1, dim) + 2 * low + low.roll(-1, dim)) / 4
+    got = nyquist_log_ratio(torch.cat([checker, low], 1))
+    assert got.shape == (16, 2) and float(got[:, 0].min()) > 5 and float(got[:, 1].max()) < -3
+    torch.testing.assert_close(nyquist_log_ratio(3 * white + 1), nyquist_log_ratio(white))
+    x = torch.randn(1, 1, 20, 20, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(nyquist_log_ratio, (x,))
+    with pytest.raises(ValueError, match=r"expected 0 < below\[0\] < below\[1\] and an even R > 2 \* below\[1\]"):
+        nyquist_log_ratio(torch.zeros(1, 1, 15, 15))
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps"):
+        nyquist_log_ratio(torch.zeros(1, 16, 16))
+
+
 def test_hairline_reach_is_the_hairline_band_and_the_scalp_behind_it():
     """And ``hairline_references``: the face side of the band, and the scalp well behind the reach."""
     from fitme_cli.reflectance.gan.data import (hairline_band, hairline_reach, hairline_references, hairline_zones,
@@ -3702,7 +3726,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
                       "eye_near_bands_by_half", "albedo_specular_link_by_region",
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
-                      "beard_band_rms_bearded"}
+                      "beard_band_rms_bearded", "nyquist_log_ratio"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -3795,6 +3819,9 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     specks = m["hairline_dark_speck_depth_x1000"]  # per side and zone: the mean over samples and the 90 % quantile
     assert list(specks) == ["data", "gan"] and all(list(v) == ["band", "behind"] for v in specks.values())
     assert all(len(q) == 2 and min(q) >= 0 for v in specks.values() for q in v.values())
+    nyq = m["nyquist_log_ratio"]  # per map and side: the mean, the 10th and 90th percentiles
+    assert list(nyq) == ["albedo", "specular", "normal_x", "normal_y"]
+    assert all(list(v) == ["data", "gan"] and all(q[1] <= q[0] <= q[2] for q in v.values()) for v in nyq.values())
     beards = m["beard_band_rms_bearded"]  # per side: how many samples are bearded, their mean band RMS (or None)
     assert list(beards) == ["data", "gan"] and all(list(v) == ["samples", "fine_mid_coarse"] for v in beards.values())
     assert all((v["fine_mid_coarse"] is None) == (v["samples"] == 0) for v in beards.values())

@@ -48,7 +48,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
            "region_edge_sharpness", "region_slope_link", "row_profile", "hairline_edge_coherence",
-           "dark_speck_depth"]
+           "dark_speck_depth", "nyquist_log_ratio"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -419,6 +419,29 @@ def dark_speck_depth(albedo: torch.Tensor, zone: torch.Tensor, face: torch.Tenso
     with torch.no_grad():
         t = torch.minimum(torch.quantile(lum[:, face], q, dim=1), torch.quantile(lum[:, scalp], q, dim=1))
     return (t[:, None] - lum[:, zone]).clamp_min(0).mean(1)
+
+
+def nyquist_log_ratio(x: torch.Tensor, below: tuple[int, int] = (2, 8)) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units, R even and > 2 * below[1] -> (N, C): per sample and channel, the log of the
+    mean FFT energy on the Nyquist row and column (frequency R / 2 along v or u, every frequency along the other) over
+    the mean energy of the rows and columns ``below`` (from R / 2 - below[1] up to, not including, R / 2 - below[0]),
+    the map Hann-windowed.
+    ~0 for white noise, very negative for smooth maps, large for a texel checkerboard (neighbours alternating).
+    A judge told every G_ema map at 318.61 kimg by it: 64 maps each at 256^2, albedo (mean of r, g, b) data +0.00
+    (q10-q90 -0.11 to +0.12) against +0.61 (+0.44 to +0.80), normals x -0.67 against +0.79 (docs/brdf_gan.md)."""
+    if x.ndim != 4 or not x.is_floating_point() or x.shape[-1] != x.shape[-2]:
+        raise ValueError(f"expected float (N, C, R, R) maps, got {tuple(x.shape)} {x.dtype}")
+    r = x.shape[-1]
+    lo, hi = below
+    if not 0 < lo < hi or r % 2 or r <= 2 * hi:
+        raise ValueError(f"expected 0 < below[0] < below[1] and an even R > 2 * below[1], got below {below}, R {r}")
+    # a Hann window: without it the map's unmatched borders leak a broadband step into every row of the spectrum
+    win = torch.hann_window(r, periodic=True, dtype=x.dtype, device=x.device)
+    f = torch.fft.fft2((x - x.mean((2, 3), keepdim=True)) * win[:, None] * win[None, :]).abs().square()
+    h = r // 2
+    nyq = f[..., h, :].mean(-1) + f[..., :, h].mean(-1)
+    ref = f[..., h - hi:h - lo, :].mean((-2, -1)) + f[..., :, h - hi:h - lo].mean((-2, -1))
+    return (nyq.clamp_min(1e-30) / ref.clamp_min(1e-30)).log()
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:
