@@ -394,9 +394,7 @@ def hairline_edge_coherence(albedo: torch.Tensor, reach: torch.Tensor, face: tor
     a = _hair_colour(albedo, face, scalp, min_contrast)
     coherence = orientation_coherence(a, sigma)
     with torch.no_grad():
-        g = a[:, None]
-        gx = F.pad(g[..., :, 2:] - g[..., :, :-2], (1, 1, 0, 0))
-        gy = F.pad(g[..., 2:, :] - g[..., :-2, :], (0, 0, 1, 1))
+        gx, gy = _central_differences(a[:, None], "constant")
         w = (gx.square() + gy.square()).sqrt()[:, 0] * reach
     return (coherence * w).flatten(1).sum(1) / w.flatten(1).sum(1).clamp_min(1e-12)
 
@@ -610,6 +608,14 @@ def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     return F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), g.view(1, 1, -1, 1))
 
 
+def _central_differences(x: torch.Tensor, mode: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, C, R, R) -> gx, gy, each (N, C, R, R): x[u + 1] - x[u - 1] along columns and rows, the border texels padded
+    by ``F.pad``'s ``mode`` ("replicate": the neighbour's difference; "constant": 0)."""
+    gx = F.pad(x[..., :, 2:] - x[..., :, :-2], (1, 1, 0, 0), mode=mode)
+    gy = F.pad(x[..., 2:, :] - x[..., :-2, :], (0, 0, 1, 1), mode=mode)
+    return gx, gy
+
+
 def _structure_tensor(img: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(N, R, R) -> jxx, jyy, jxy, each (N, 1, R, R): central-difference gradients' outer products, smoothed
     by a Gaussian of ``sigma`` texels."""
@@ -617,9 +623,7 @@ def _structure_tensor(img: torch.Tensor, sigma: float) -> tuple[torch.Tensor, to
         raise ValueError(f"expected a float (N, R, R) image, got {tuple(img.shape)} {img.dtype}")
     if not sigma > 0 or min(img.shape[1:]) <= 6 * sigma:
         raise ValueError(f"expected sigma > 0 and maps wider than 6 sigma, got sigma {sigma} for {tuple(img.shape[1:])}")
-    x = img[:, None]
-    gx = F.pad(x[..., :, 2:] - x[..., :, :-2], (1, 1, 0, 0), mode="replicate")
-    gy = F.pad(x[..., 2:, :] - x[..., :-2, :], (0, 0, 1, 1), mode="replicate")
+    gx, gy = _central_differences(img[:, None], "replicate")
     jxx, jyy, jxy = (gaussian_blur(a, sigma) for a in (gx * gx, gy * gy, gx * gy))
     return jxx, jyy, jxy
 

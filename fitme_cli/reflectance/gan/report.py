@@ -132,6 +132,11 @@ def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
     return [round(float(v), 3) for v in np.quantile(values.double().numpy(), qs)]
 
 
+def _mean_quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
+    """(N,) per-sample values -> their mean over samples, then ``_quantiles``, each rounded to 3 places."""
+    return [round(float(values.double().mean()), 3), *_quantiles(values, qs)]
+
+
 def _slope_row(slope: torch.Tensor) -> dict[str, list[float]]:
     """(N, 2) one region's ``_Side.specular_slope`` -> its mean along u and v, and the quantiles of their mean."""
     return {"u_v": [round(float(v), 3) for v in slope.double().mean(0)],
@@ -438,8 +443,7 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # albedo's finest band (mean of r, g, b) with the specular's (``metrics.region_band_correlation``), the mean
         # over samples and the 10th and 90th percentiles
         "albedo_specular_link_by_region": {
-            _region_name(lab): {side: [round(float(m.albedo_specular_link[:, j].double().mean()), 3),
-                                       *_quantiles(m.albedo_specular_link[:, j], (0.1, 0.9))]
+            _region_name(lab): {side: _mean_quantiles(m.albedo_specular_link[:, j], (0.1, 0.9))
                                 for side, m in (("data", real), ("gan", gan))}
             for j, lab in enumerate(region_labels(regions))},
         # a smooth outline where the data's hairline is ragged (the 308.28 kimg judge N): per sample, the hairline's
@@ -450,16 +454,14 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                     for side, m in (("data", real), ("gan", gan))},
         # a texel checkerboard (the 318.61 kimg judge O): per sample, the log of the FFT energy on the Nyquist row and
         # column over the rows and columns just below (``metrics.nyquist_log_ratio``), its mean and 10 / 90 % quantiles
-        "nyquist_log_ratio": {name: {side: [round(float(m.nyquist[:, c].double().mean()), 3),
-                                            *_quantiles(m.nyquist[:, c], (0.1, 0.9))]
+        "nyquist_log_ratio": {name: {side: _mean_quantiles(m.nyquist[:, c], (0.1, 0.9))
                                      for side, m in (("data", real), ("gan", gan))}
                               for c, name in enumerate(("albedo", "specular", "normal_x", "normal_y"))},
         # dark specks along the hairline (the 308.28 kimg judge N): per sample, how far the reach's texels fall below the
         # darker of the skin's and the hair's 1 % quantile (``metrics.dark_speck_depth``, log luminance, x 1000), over
         # the hairline band and over the scalp behind it: the mean over samples and the 90 % quantile
         "hairline_dark_speck_depth_x1000": {
-            side: {zone: [round(1000 * float(m.hairline_specks[:, j].double().mean()), 3),
-                          *_quantiles(1000 * m.hairline_specks[:, j].double(), (0.9,))]
+            side: {zone: _mean_quantiles(1000 * m.hairline_specks[:, j].double(), (0.9,))
                    for j, zone in enumerate(("band", "behind"))}
             for side, m in (("data", real), ("gan", gan))},
         # colour fringes and coloured rim texels (the 267.35 kimg judges): per region, G's single-texel grain of the
