@@ -1010,11 +1010,12 @@ def test_band_weight_moves_the_fakes_fine_detail(tmp_path):
         TrainSettings(band_levels=0)
 
 
-def _relief_ref(lum: torch.Tensor, nxy: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
-    """The slow, obvious region_relief: numpy's correlation of the finest bands over each region's texels."""
+def _relief_ref(lum: torch.Tensor, nxy: torch.Tensor, regions: torch.Tensor, level: int = 0) -> torch.Tensor:
+    """The slow, obvious region_relief (and region_band_correlation at ``level``): numpy's correlation of the Laplacian
+    bands over each region's texels."""
     from fitme_cli.reflectance.gan.metrics import _bandpass, region_labels
 
-    band = _bandpass(torch.cat([lum[:, None], nxy], 1).double(), 1)[0].numpy()
+    band = _bandpass(torch.cat([lum[:, None], nxy], 1).double(), level + 1)[level].numpy()
     out = np.zeros((len(lum), len(region_labels(regions)), 2))
     for j, lab in enumerate(region_labels(regions)):
         m = (regions == lab).numpy()
@@ -1096,6 +1097,225 @@ def test_relief_weight_moves_the_fakes_relief(tmp_path):
     torch.testing.assert_close(data_relief(data, regions, chunk=4), _albedo_relief(data.float(), regions).mean(0))
     _check_shifted_pull("relief", _albedo_relief, regions, data, tmp_path, 0.05)
     assert TrainSettings(relief_weight=1.0, side_regions=True).region_terms  # the relief term counts as one
+
+
+def test_region_band_correlation_coarser_levels_match_reference_known_values_gradients_and_bad_input():
+    """``level`` picks the Laplacian band: each level's correlations equal numpy's over the regions' texels; bumps 8
+    texels wide, bright across their width, give ~0 at levels 1 and 2, and their slope (a relief lit from the left)
+    is strongly correlated with the normals' x there; float64 gradients; a level the resolution cannot hold is refused."""
+    from fitme_cli.reflectance.gan.metrics import region_band_correlation
+
+    r = 64
+    regions = _two_regions(r)
+    g = torch.Generator().manual_seed(0)
+    lum, nxy = torch.rand(2, r, r, generator=g), torch.randn(2, 2, r, r, generator=g)
+    for level in (0, 1, 2):
+        torch.testing.assert_close(region_band_correlation(lum, nxy, regions, level).double(),
+                                   _relief_ref(lum, nxy, regions, level), atol=1e-5, rtol=1e-4)
+    yy, xx = torch.meshgrid(torch.arange(float(r)), torch.arange(float(r)), indexing="ij")
+    h = torch.zeros(4, r, r)
+    for i in range(4):
+        for cy, cx in (torch.rand(30, 2, generator=g) * r).tolist():
+            h[i] += torch.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / 32.0)  # 8 texels wide
+    dx, dy = torch.gradient(h, dim=2)[0], -torch.gradient(h, dim=1)[0]
+    n = torch.stack([-dx, -dy, torch.ones_like(h)], 1)
+    n = (n / n.norm(dim=1, keepdim=True))[:, :2]
+    for level in (1, 2):
+        flat_lit = region_band_correlation(h, n, regions, level).mean(0)
+        embossed = region_band_correlation(-dx, n, regions, level).mean(0)
+        assert flat_lit.abs().max() < 0.15 and (embossed[:, 0] > 0.8).all(), (level, flat_lit, embossed)
+    a64 = torch.rand(1, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    b64 = torch.randn(1, 2, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b: region_band_correlation(a, b, _two_regions(), 1), (a64, b64))
+    with pytest.raises(ValueError, match="got level 6, R 64"):
+        region_band_correlation(lum, nxy, regions, 6)
+    with pytest.raises(ValueError, match="got level -1"):
+        region_band_correlation(lum, nxy, regions, -1)
+
+
+def test_relief_bands_are_the_parts_correlations_and_pull(tmp_path):
+    """The relief-band measure is ``region_band_correlation`` with the normals' x and y of each (map, band) of
+    ``_RELIEF_PARTS``: the decoded albedo's mean of r, g, b, its two log-chromaticity axes, the decoded specular;
+    the luminance's finest band is left to the relief term; flipping the normals' x and y flips it; with the term G's
+    measure moves toward a target above and one below."""
+    from fitme_cli.reflectance.gan.metrics import log_chroma, region_band_correlation
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _RELIEF_PARTS, _relief_bands
+
+    assert ("luminance", 0) not in _RELIEF_PARTS and len(set(_RELIEF_PARTS)) == len(_RELIEF_PARTS) == 11
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    m = decode_maps(GanImages.split(x), TINY)
+    chroma = log_chroma(m.albedo)
+    maps = {"luminance": m.albedo.mean(1), "red_green": chroma[:, 0], "yellow_blue": chroma[:, 1],
+            "specular": m.specular[:, 0]}
+    got = _relief_bands(x, regions, TINY).view(3, 2, len(_RELIEF_PARTS), 2)  # (samples, regions, parts, x and y)
+    for i, (name, level) in enumerate(_RELIEF_PARTS):
+        torch.testing.assert_close(got[:, :, i], region_band_correlation(maps[name], x[:, 4:6], regions, level))
+    flipped = x.clone()
+    flipped[:, 4:6] = -flipped[:, 4:6]
+    torch.testing.assert_close(_relief_bands(flipped, regions, TINY), -got.flatten(1))
+    _check_shifted_pull("relief_band", lambda y, r: _relief_bands(y, r, TINY), regions, _tiny_data(), tmp_path, 0.1)
+
+
+def _skew_ref(x: torch.Tensor, regions: torch.Tensor, level: int) -> torch.Tensor:
+    """The slow, obvious region_band_skew: scipy's skewness of the Laplacian band over each region's texels."""
+    from scipy.stats import skew
+
+    from fitme_cli.reflectance.gan.metrics import _bandpass, region_labels
+
+    band = _bandpass(x.double(), level + 1)[level].numpy()
+    out = np.zeros((len(x), len(region_labels(regions)), x.shape[1]))
+    for j, lab in enumerate(region_labels(regions)):
+        m = (regions == lab).numpy()
+        for i in range(len(x)):
+            for c in range(x.shape[1]):
+                out[i, j, c] = skew(band[i, c][m])
+    return torch.from_numpy(out)
+
+
+def test_region_band_skew_matches_reference_known_values_gradients_and_bad_input():
+    """Each level's skewness equals scipy's over the regions' texels; a height field's slopes (bumps tilting both ways
+    alike) give ~0, the height's own bumps a clearly positive skew and its pits a negative one; a flat region gives 0
+    with a finite gradient; float64 gradients; bad input refused."""
+    from fitme_cli.reflectance.gan.metrics import region_band_skew
+
+    r = 64
+    regions = _two_regions(r)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 2, r, r, generator=g) ** 3  # skewed
+    for level in (0, 1):
+        got = region_band_skew(x, regions, level)
+        assert got.shape == (2, 2, 2)
+        torch.testing.assert_close(got.double(), _skew_ref(x, regions, level), atol=1e-4, rtol=1e-3)
+    yy, xx = torch.meshgrid(torch.arange(float(r)), torch.arange(float(r)), indexing="ij")
+    h = torch.zeros(4, r, r)
+    for i in range(4):
+        for cy, cx in (torch.rand(60, 2, generator=g) * r).tolist():
+            h[i] += torch.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / 4.0)
+    slopes = torch.stack([torch.gradient(h, dim=2)[0], torch.gradient(h, dim=1)[0]], 1)
+    assert region_band_skew(slopes, regions, 0).mean(0).abs().max() < 0.25
+    bumps = region_band_skew(torch.stack([h, -h], 1), regions, 0).mean(0)
+    assert (bumps[:, 0] > 0.5).all() and (bumps[:, 1] < -0.5).all(), bumps
+    flat = torch.full((1, 1, r, r), 0.5, requires_grad=True)
+    out = region_band_skew(flat, regions)
+    out.sum().backward()
+    assert out.abs().max() == 0 and torch.isfinite(flat.grad).all()
+    x64 = torch.rand(1, 2, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a: region_band_skew(a, _two_regions(), 1), (x64,))
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps .* got \(2, 64, 64\)"):
+        region_band_skew(x[:, 0], regions)
+    with pytest.raises(ValueError, match="got level 6, R 64"):
+        region_band_skew(x, regions, 6)
+
+
+def test_normal_symmetry_is_the_normals_skew_and_xy_correlation_and_pulls(tmp_path):
+    """The normal-symmetry measure is, for bands 0 and 1, the skewness of the normals' x and y and their correlation;
+    blind to albedo and specular; flipping the normals' x flips x's skew and the correlation, not y's skew; with the
+    term G's measure moves toward a target above and one below."""
+    from fitme_cli.reflectance.gan.metrics import region_band_correlation, region_band_skew
+    from fitme_cli.reflectance.gan.train import _normal_symmetry
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    got = _normal_symmetry(x, regions).view(3, 2, 2, 3)  # (samples, regions, bands, [skew x, skew y, corr])
+    for level in (0, 1):
+        torch.testing.assert_close(got[:, :, level, :2], region_band_skew(x[:, 4:6], regions, level))
+        torch.testing.assert_close(got[:, :, level, 2], region_band_correlation(x[:, 4], x[:, 5:6], regions, level)[..., 0])
+    other = x.clone()
+    other[:, :4] = torch.rand(3, 4, 16, 16)
+    torch.testing.assert_close(_normal_symmetry(other, regions), got.flatten(1))
+    flipped = x.clone()
+    flipped[:, 4] = -flipped[:, 4]
+    torch.testing.assert_close(_normal_symmetry(flipped, regions).view(3, 2, 2, 3), got * torch.tensor([-1.0, 1.0, -1.0]))
+    _check_shifted_pull("normal_symmetry", _normal_symmetry, regions, _tiny_data(), tmp_path, 0.2)
+
+
+def test_region_band_neighbour_matches_a_loop_known_values_gradients_and_bad_input():
+    """The lag-1 correlation of a band along u and v equals a loop over each region's texels and their wrapped
+    neighbours; white noise's finest band is anticorrelated with its neighbour (the band is a difference from a local
+    mean), a smooth field's positively, and stripes along u give u's neighbour ~1 and v's negative; a flat region gives
+    0 with a finite gradient; float64 gradients; bad input refused."""
+    from fitme_cli.reflectance.gan.metrics import _bandpass, region_band_neighbour
+
+    r = 32
+    regions = _two_regions(r)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 2, r, r, generator=g, dtype=torch.float64)
+    got = region_band_neighbour(x, regions, 1)
+    assert got.shape == (2, 2, 2, 2)
+    band = _bandpass(x, 2)[1]
+    for j, lab in enumerate((2, 7)):
+        m = regions == lab
+        for i in range(2):
+            for c in range(2):
+                b = band[i, c]
+                for d, nb in enumerate((torch.roll(b, -1, 1), torch.roll(b, -1, 0))):
+                    mu = b[m].mean()
+                    want = ((b[m] * nb[m]).mean() - mu * nb[m].mean()) / ((b[m] - mu).square().mean())
+                    torch.testing.assert_close(got[i, j, c, d], want)
+    white = region_band_neighbour(torch.randn(4, 1, r, r, generator=g), regions).mean(0)
+    smooth = region_band_neighbour(F.avg_pool2d(
+        torch.randn(4, 1, r + 3, r + 3, generator=g), 4, 1), regions).mean(0)
+    assert (white < -0.1).all() and (smooth > 0.15).all(), (white, smooth)
+    stripes = torch.sin(torch.arange(r) * 2.2)[None, None, :, None].expand(1, 1, r, r).contiguous()
+    sv = region_band_neighbour(stripes, regions)[0, :, 0]  # rows alternate: constant along u
+    assert (sv[:, 0] > 0.99).all() and (sv[:, 1] < -0.2).all(), sv
+    flat = torch.full((1, 1, r, r), 0.5, requires_grad=True)
+    out = region_band_neighbour(flat, regions)
+    out.sum().backward()
+    assert out.abs().max() == 0 and torch.isfinite(flat.grad).all()
+    x64 = torch.rand(1, 1, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a: region_band_neighbour(a, _two_regions()), (x64,))
+    with pytest.raises(ValueError, match="uint8 regions matching them"):
+        region_band_neighbour(x, regions[:16])
+    with pytest.raises(ValueError, match="got level 5, R 32"):
+        region_band_neighbour(x, regions, 5)
+
+
+def test_texel_neighbour_is_the_texel_maps_finest_band_neighbours_and_pulls(tmp_path):
+    """The texel-neighbour measure is ``region_band_neighbour`` of ``texel_maps``' finest band; ``texel_maps`` is the
+    decoded albedo's log luminance and log chromaticity, the decoded specular and the normals' x and y; with the term
+    G's measure moves toward a target above and one below."""
+    from fitme_cli.reflectance.gan.metrics import log_chroma, region_band_neighbour
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _texel_neighbour, texel_maps
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    m = decode_maps(GanImages.split(x), TINY)
+    maps = texel_maps(x, TINY)
+    torch.testing.assert_close(maps, torch.cat([m.albedo.mean(1, keepdim=True).clamp_min(1e-3).log(), log_chroma(m.albedo),
+                                                m.specular, x[:, 4:6]], 1))
+    torch.testing.assert_close(_texel_neighbour(x, regions, TINY), region_band_neighbour(maps, regions).flatten(1))
+    _check_shifted_pull("texel_neighbour", lambda y, r: _texel_neighbour(y, r, TINY), regions, _tiny_data(), tmp_path, 0.2)
+
+
+def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
+    """The Nyquist measure is ``metrics.nyquist_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded
+    specular and the normals' x and y (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2), then each one's
+    unbiased variance over the batch; a batch of one is refused; with the term G's measure moves toward a target above
+    and one below."""
+    from fitme_cli.reflectance.gan.metrics import nyquist_log_ratio
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _nyquist
+
+    regions = _two_regions()
+    g = torch.Generator().manual_seed(0)
+    for r, below in ((16, (2, 6)), (32, (2, 8))):
+        x = torch.randn(3, 7, r, r, generator=g).clamp(-1, 1)
+        m = decode_maps(GanImages.split(x), TINY)
+        v = nyquist_log_ratio(torch.cat([m.albedo.mean(1, keepdim=True), m.specular, x[:, 4:6]], 1), below)
+        got = _nyquist(x, regions, TINY)
+        torch.testing.assert_close(got[:, :4], v)
+        torch.testing.assert_close(got[:, 4:].mean(0), v.var(0))
+    checker = (torch.arange(16)[:, None] + torch.arange(16)[None]) % 2 * 0.2 - 0.1
+    rough = x[:, :, :16, :16].clone()
+    rough[:, 4] = rough[:, 4] * 0.1 + checker  # a texel checkerboard in the normals' x
+    assert (_nyquist(rough, regions, TINY)[:, 2] > _nyquist(x[:, :, :16, :16], regions, TINY)[:, 2] + 1).all()
+    with pytest.raises(ValueError, match="_nyquist needs a batch of at least 2 samples"):
+        _nyquist(x[:1], regions, TINY)
+    _check_shifted_pull("nyquist", lambda y, r: _nyquist(y, r, TINY), regions, _tiny_data(), tmp_path, 0.2)
 
 
 def test_texel_tails_are_the_decoded_maps_tails_and_blind_to_the_normals():
@@ -3175,6 +3395,8 @@ def test_nyquist_log_ratio_known_values_gradients_and_bad_input():
     torch.testing.assert_close(nyquist_log_ratio(3 * white + 1), nyquist_log_ratio(white))
     x = torch.randn(1, 1, 20, 20, generator=g, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(nyquist_log_ratio, (x,))
+    small = torch.randn(2, 1, 16, 16, generator=g)  # below 32^2 the band below is cut to rows 2-6
+    torch.testing.assert_close(nyquist_log_ratio(small), nyquist_log_ratio(small, (2, 6)))
     with pytest.raises(ValueError, match=r"expected 0 < below\[0\] < below\[1\] and an even R > 2 \* below\[1\]"):
         nyquist_log_ratio(torch.zeros(1, 1, 15, 15))
     with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps"):
@@ -3501,7 +3723,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -3557,6 +3779,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.hairline_specks_weight == 0.1 and lines[-1]["hairline_specks_gap"] >= 0
     assert "hairline_specks_gap" not in lines[0]
     assert state.train.beard_band_weight == 0.5 and lines[-1]["beard_band_gap"] > 0 and "beard_band_gap" not in lines[0]
+    assert state.train.relief_band_weight == 4.0 and lines[-1]["relief_band_gap"] > 0 and "relief_band_gap" not in lines[0]
+    assert state.train.nyquist_weight == 0.5 and lines[-1]["nyquist_gap"] > 0 and "nyquist_gap" not in lines[0]
+    assert state.train.normal_symmetry_weight == 3.0 and lines[-1]["normal_symmetry_gap"] > 0
+    assert "normal_symmetry_gap" not in lines[0]
+    assert state.train.texel_neighbour_weight == 2.0 and lines[-1]["texel_neighbour_gap"] > 0
+    assert "texel_neighbour_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -3726,7 +3954,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
                       "eye_near_bands_by_half", "albedo_specular_link_by_region",
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
-                      "beard_band_rms_bearded", "nyquist_log_ratio"}
+                      "beard_band_rms_bearded", "nyquist_log_ratio", "relief_band_by_region",
+                      "normal_symmetry_by_region", "texel_neighbour_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -3750,6 +3979,19 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     relief = m["albedo_normal_relief_by_region"]
     assert set(relief) == set(m["albedo_band_ratio_by_region"])
     assert all(len(v) == 2 and all(-1 <= c <= 1 for c in v) for r in relief.values() for v in r.values())
+    bands = m["relief_band_by_region"]  # per region, "{map}_{band}" and side: the correlation with normals [x, y]
+    assert set(bands) == set(relief) and all(len(r) == 11 and "luminance_1" in r and "specular_0" in r for r in bands.values())
+    assert all(list(p) == ["data", "gan"] and all(len(v) == 2 and all(-1 <= c <= 1 for c in v) for v in p.values())
+               for r in bands.values() for p in r.values())
+    nbr = m["texel_neighbour_by_region"]  # per region, map and side: the finest band's neighbour correlation [u, v]
+    assert set(nbr) == set(relief) and all(list(r) == ["log_luminance", "red_green", "yellow_blue", "specular", "normal_x",
+                                                       "normal_y"] for r in nbr.values())
+    assert all(list(p) == ["data", "gan"] and all(len(v) == 2 and all(abs(c) < 2 for c in v) for v in p.values())
+               for r in nbr.values() for p in r.values())
+    sym = m["normal_symmetry_by_region"]  # per region, band and side: [skew x, skew y, x-y correlation]
+    assert set(sym) == set(relief) and all(list(r) == ["band_0", "band_1"] for r in sym.values())
+    assert all(list(p) == ["data", "gan"] and all(len(v) == 3 and all(np.isfinite(c) for c in v) and -1 <= v[2] <= 1
+                                                  for v in p.values()) for r in sym.values() for p in r.values())
     sides = m["albedo_band_ratio_by_side"]
     assert set(sides) == set(m["albedo_band_ratio_by_region"]) and all(len(v) == 2 for v in sides.values())
     assert all(b is None or (np.isfinite(b) and b > 0) for v in sides.values() for b in v)
@@ -4245,3 +4487,79 @@ def test_widening_refuses_what_it_cannot_do():
         widen_state(state, dataclasses.replace(TINY, channel_max=8))
     with pytest.raises(ValueError, match="cannot widen"):
         widen_module(Generator(dataclasses.replace(TINY, channel_base=128)), Generator(TINY))
+
+
+def test_screen_features_names_known_values_and_bad_input():
+    """One name per statistic; a region's skewness is scipy's of its band; a flat map gives 0 skew and neighbour
+    correlation, not NaN; a texel checkerboard planted in the normals' x ranks "nyquist normal_x" first with AUC 1;
+    bad maps, regions and names are refused."""
+    from scipy.stats import skew
+
+    from fitme_cli.reflectance.gan.metrics import _bandpass
+    from fitme_cli.reflectance.gan.screen import MAPS, _maps, screen, screen_features
+
+    regions = _two_regions()
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(6, 7, 16, 16, generator=g).clamp(-1, 1)
+    feats, names = screen_features(x, regions, TINY, ("left", "right"))
+    k = 2
+    assert feats.shape == (6, len(names)) and len(names) == 4 * (4 * 6 * k + 15 * k) + 6 and len(set(names)) == len(names)
+    assert np.isfinite(feats).all()
+    band = _bandpass(_maps(x, TINY), 4)[1][:, MAPS.index("specular")].numpy()
+    j = names.index("band1 skew specular right")
+    np.testing.assert_allclose(feats[:, j], [skew(b[(regions == 7).numpy()]) for b in band], rtol=1e-6, atol=1e-9)
+    flat = torch.zeros(2, 7, 16, 16)
+    ff, _ = screen_features(flat, regions, TINY)
+    assert np.isfinite(ff).all() and ff[:, names.index("band0 skew normal_x left")].tolist() == [0, 0]
+    assert ff[:, names.index("band0 neighbour normal_y right")].tolist() == [0, 0]
+    checker = ((torch.arange(16)[:, None] + torch.arange(16)[None]) % 2 * 0.4 - 0.2)
+    planted = x.clone()
+    planted[:, 4] = planted[:, 4] * 0.2 + checker
+    data = torch.randn(8, 7, 16, 16, generator=g).clamp(-1, 1)
+    rows = screen(screen_features(planted, regions, TINY)[0], *screen_features(data, regions, TINY))
+    top = {r.name: r for r in rows[:10]}
+    assert "nyquist normal_x" in top and top["nyquist normal_x"].auc == 1.0, [r.name for r in rows[:10]]
+    assert abs(rows[-1].auc - 0.5) <= abs(rows[0].auc - 0.5)
+    with pytest.raises(ValueError, match=r"R divisible by 16, got \(2, 7, 8, 8\)"):
+        screen_features(torch.zeros(2, 7, 8, 8), regions[:8, :8], TINY)
+    with pytest.raises(ValueError, match="uint8 regions matching the maps"):
+        screen_features(x, regions.long(), TINY)
+    with pytest.raises(ValueError, match="expected 2 region names, got 1"):
+        screen_features(x, regions, TINY, ("one",))
+
+
+def test_screen_auc_and_ranking_known_values_and_bad_input():
+    from fitme_cli.reflectance.gan.screen import auc, screen
+
+    assert auc(np.array([2.0, 3.0]), np.array([0.0, 1.0])) == 1.0
+    assert auc(np.array([0.0, 1.0]), np.array([2.0, 3.0])) == 0.0
+    assert auc(np.array([1.0, 2.0]), np.array([1.0, 2.0])) == 0.5  # ties count a half
+    assert auc(np.array([1.0, 3.0]), np.array([2.0])) == 0.5
+    gan = np.array([[0.0, 9.0, np.nan], [1.0, 8.0, 0.0]])
+    data = np.array([[0.5, 0.0, 0.0], [0.2, 1.0, 0.0], [0.9, 2.0, 0.0], [0.1, 3.0, 0.0]])
+    rows = screen(gan, data, ["mixed", "apart", "nan"])
+    assert [r.name for r in rows] == ["apart", "mixed"] and rows[0].auc == 1.0 and rows[0].auc_half == 0.0
+    assert rows[0].gan_median == 8.5 and rows[0].data_median == 1.5
+    with pytest.raises(ValueError, match="non-empty 1-D"):
+        auc(np.zeros((2, 2)), np.zeros(2))
+    with pytest.raises(ValueError, match=r"m >= 4"):
+        screen(gan, data[:3], ["a", "b", "c"])
+
+
+def test_screen_command_ranks_a_checkpoint_against_the_data(dataset_dir, tmp_path, capsys):
+    """``python -m ...screen`` on a tiny checkpoint: a summary line and the top rows, every statistic in the JSON;
+    a missing generator or too few samples exit 2 with a message."""
+    from fitme_cli.reflectance.gan.screen import main as screen_main
+    from fitme_cli.reflectance.gan.train import new_state, save_checkpoint
+
+    s = GanSettings(resolution=32, branch_resolution=32, channel_base=64, channel_max=16, z_dim=8, w_dim=8)
+    save_checkpoint(new_state(s, TrainSettings(batch=2)), tmp_path / "ck.safetensors")
+    assert screen_main([str(tmp_path / "ck.safetensors"), str(dataset_dir), "-n", "4", "--top", "3",
+                        "--json", str(tmp_path / "rows.json")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "statistics;" in out[0] and len(out) == 4 and all(line.strip().startswith("AUC") for line in out[1:])
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert len(rows) > 100 and set(rows[0]) == {"name", "auc", "auc_half", "data_median", "gan_median"}
+    assert screen_main([str(tmp_path / "none.safetensors"), str(dataset_dir)]) == 2
+    assert screen_main([str(tmp_path / "ck.safetensors"), str(dataset_dir), "-n", "1"]) == 2
+    assert "screen:" in capsys.readouterr().err

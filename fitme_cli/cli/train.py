@@ -51,7 +51,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "chroma_grain_weight", "specular_link_weight", "specular_spectrum_weight", "texel_tail_weight",
                 "eye_ring_weight", "edge_sharpness_weight", "specular_slope_weight", "forehead_rows_weight",
                 "albedo_specular_link_weight", "hairline_edge_weight", "hairline_specks_weight",
-                "beard_band_weight",
+                "beard_band_weight", "relief_band_weight", "nyquist_weight",
+                "normal_symmetry_weight", "texel_neighbour_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -208,6 +209,22 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="Pull the fine texture of G's beards (the log luminance's three finest bands over the beard zone, "
                    "weighted by each face's hair share there) to the data's, each band relative to its target (not in "
                    "the paper; may change on --resume). [0]")
+@click.option("--relief-band-weight", type=click.FloatRange(min=0),
+              help="Pull each region's correlation of G's albedo luminance (2-8 texels), chromaticity and specular "
+                   "(1-8 texels) with its normals' x and y to the data's ~0: against bumps embossed into the albedo "
+                   "(not in the paper; may change on --resume). [0]")
+@click.option("--nyquist-weight", type=click.FloatRange(min=0),
+              help="Pull each map's energy on the Nyquist row and column over the octave below (albedo, specular, "
+                   "normals x and y), and its spread between samples, to the data's: against a texel checkerboard "
+                   "(not in the paper; may change on --resume). [0]")
+@click.option("--normal-symmetry-weight", type=click.FloatRange(min=0),
+              help="Pull each region's skewness of G's normals' x and y and their correlation, in the two finest "
+                   "bands, to the data's ~0: against bumps tilted one way more than the other (not in the paper; may "
+                   "change on --resume). [0]")
+@click.option("--texel-neighbour-weight", type=click.FloatRange(min=0),
+              help="Pull how smooth each region's finest band runs from texel to texel (its correlation with the "
+                   "next texel along u and v; log luminance and chromaticity, specular, normals x and y) to the "
+                   "data's (not in the paper; may change on --resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

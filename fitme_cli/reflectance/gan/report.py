@@ -27,7 +27,8 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       dark_speck_depth, nyquist_log_ratio)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import copy_generator, load_checkpoint
+from .train import (_RELIEF_PARTS, TEXEL_MAPS, _normal_symmetry, _relief_bands, _texel_neighbour, copy_generator,
+                    load_checkpoint)
 
 __all__ = ["evaluate", "main"]
 
@@ -83,6 +84,9 @@ class _Side:
     hairline: torch.Tensor  # (3 zones, 3 bands) band RMS in ``data.hairline_zones``
     sides: torch.Tensor  # (k,) finest-band RMS in each half of each region (``data.split_sides``)
     relief: torch.Tensor  # (k, 2) ``metrics.region_relief`` against the normals' x and y
+    relief_bands: torch.Tensor  # (k, parts, 2) the relief-band term's measure (``train._relief_bands``, ``_RELIEF_PARTS``)
+    normal_symmetry: torch.Tensor  # (k, 2 bands, 3) the normal-symmetry term's (``train._normal_symmetry``)
+    texel_neighbour: torch.Tensor  # (k, 6 maps, 2) the texel-neighbour term's (``train._texel_neighbour``)
     moments: torch.Tensor  # (k', 2, 3) ``metrics.region_moments`` per region of ``features`` (eyes, brow edges carved)
     feature_bands: torch.Tensor  # (k', 3 bands) band RMS per region of ``features``
     beard: torch.Tensor  # (N,) ``metrics.hair_share`` of ``data.beard_zone``
@@ -227,6 +231,10 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "hairline": region_band_energy(x[:, :3], zones).mean(3),
             "sides": region_band_energy(x[:, :3], sides, 1)[:, :, 0].mean(2),
             "relief": region_relief(x[:, :3].mean(1), x[:, 4:6], regions),
+            # the terms' own measures, in network space as they take it
+            "relief_bands": _relief_bands(net, regions, G.settings).view(len(x), -1, len(_RELIEF_PARTS), 2),
+            "normal_symmetry": _normal_symmetry(net, regions).view(len(x), -1, 2, 3),
+            "texel_neighbour": _texel_neighbour(net, regions, G.settings).view(len(x), -1, len(TEXEL_MAPS), 2),
             "moments": region_moments(x[:, :3], features),
             "feature_bands": region_band_energy(x[:, :3], features).mean(3),
             "beard": hair_share(x[:, :3], beard),
@@ -377,6 +385,26 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "albedo_normal_relief_by_region": {_region_name(lab): {"data": [round(float(v), 3) for v in real.relief[j]],
                                                                "gan": [round(float(v), 3) for v in gan.relief[j]]}
                                            for j, lab in enumerate(region_labels(regions))},
+        # the same in coarser bands, for the chromaticity and the specular too: where G's embossing went when the relief
+        # term held the finest band (docs/brdf_gan.md). Per region and "{map}_{band}" (0: 1-2 texels, 1: 2-4, 2: 4-8),
+        # the mean correlation with the normals' [x, y] (the data's ~0 on the skin)
+        "relief_band_by_region": {_region_name(lab): {f"{name}_{level}": {side: [round(float(v), 3) for v in m.relief_bands[j, i]]
+                                                                          for side, m in (("data", real), ("gan", gan))}
+                                                      for i, (name, level) in enumerate(_RELIEF_PARTS)}
+                                  for j, lab in enumerate(region_labels(regions))},
+        # normals tilted one way more than the other, or along a diagonal (docs/brdf_gan.md): per region and band (0:
+        # 1-2 texels, 1: 2-4), the mean skewness of the normals' x and y and their correlation (the data's ~0)
+        "normal_symmetry_by_region": {_region_name(lab): {f"band_{b}": {side: [round(float(v), 3) for v in m.normal_symmetry[j, b]]
+                                                                        for side, m in (("data", real), ("gan", gan))}
+                                                          for b in range(2)}
+                                      for j, lab in enumerate(region_labels(regions))},
+        # a finest band smoother (or rougher) from texel to texel than the data's, at the same energy (docs/brdf_gan.md):
+        # per region and map of ``train.texel_maps``, the mean correlation of the finest band with the next texel
+        # along [u, v] (``metrics.region_band_neighbour``)
+        "texel_neighbour_by_region": {_region_name(lab): {name: {side: [round(float(v), 3) for v in m.texel_neighbour[j, i]]
+                                                                 for side, m in (("data", real), ("gan", gan))}
+                                                          for i, name in enumerate(TEXEL_MAPS)}
+                                      for j, lab in enumerate(region_labels(regions))},
         # a region of the wrong colour or spread (the eye openings, docs/brdf_gan.md): per region, eye openings and
         # brow edges included, G's mean over the data's of each albedo channel's [r, g, b] mean and within-region std
         "albedo_moment_ratio_by_region": {_region_name(lab): {part: _ratios(gan.moments[j, i], real.moments[j, i])
