@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .metrics import _bandpass, _region_weights, nyquist_log_ratio, region_band_neighbour, region_labels
+from .metrics import (_bandpass, _paired_region_correlation, _region_weights, nyquist_log_ratio, region_band_neighbour,
+                      region_band_skew, region_labels)
 from .networks import GanSettings
 from .train import TEXEL_MAPS, texel_maps
 
@@ -60,21 +61,21 @@ def screen_features(x: torch.Tensor, regions: torch.Tensor, s: GanSettings, name
     def safe(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
         return torch.where(den > 1e-20, num / den.clamp_min(1e-20), torch.zeros_like(num))
 
+    first, second = ([p[k] for p in pairs] for k in (0, 1))
     for level, band in enumerate(_bandpass(m, _LEVELS)):
         b = band.flatten(2)  # (N, C, R*R)
         e1, e2, e3, e4 = (b ** p @ w for p in (1, 2, 3, 4))  # (N, C, k) raw moments
         var = (e2 - e1 ** 2).clamp_min(0)
-        m3 = e3 - 3 * e1 * e2 + 2 * e1 ** 3
         m4 = e4 - 4 * e1 * e3 + 6 * e1 ** 2 * e2 - 3 * e1 ** 4
+        skew = region_band_skew(m, regions, level).transpose(1, 2)  # (N, C, k)
         nbr = region_band_neighbour(m, regions, level)[..., 0].transpose(1, 2)  # along u, (N, C, k)
-        for stat, v in (("log_variance", var.clamp_min(1e-20).log()), ("skew", safe(m3, var ** 1.5)),
+        for stat, v in (("log_variance", var.clamp_min(1e-20).log()), ("skew", skew),
                         ("log_kurtosis", safe(m4, var ** 2).clamp_min(1e-20).log()), ("neighbour", nbr)):
             feats.append(v.flatten(1))
             out_names += [f"band{level} {stat} {c} {r}" for c in MAPS for r in names]
-        for i, j in pairs:
-            cov = (b[:, i] * b[:, j]) @ w - e1[:, i] * e1[:, j]
-            feats.append(safe(cov, (var[:, i] * var[:, j]).sqrt()))
-            out_names += [f"band{level} correlation {MAPS[i]}-{MAPS[j]} {r}" for r in names]
+        # (N, k, pairs) -> pair by pair, each over the regions
+        feats.append(_paired_region_correlation(band[:, first], band[:, second], regions).transpose(1, 2).flatten(1))
+        out_names += [f"band{level} correlation {MAPS[i]}-{MAPS[j]} {r}" for i, j in pairs for r in names]
     feats.append(nyquist_log_ratio(m))
     out_names += [f"nyquist {c}" for c in MAPS]
     return torch.cat(feats, 1).numpy(), out_names
