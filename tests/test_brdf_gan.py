@@ -1087,6 +1087,38 @@ def _check_shifted_pull(name: str, measure, regions: torch.Tensor, data: torch.T
     _assert_region_term_refusals(name, data, run_dir)
 
 
+def _check_spread_pull(name: str, measure, regions: torch.Tensor, run_dir, weight: float,
+                       spread: float | None = None) -> None:
+    """A term of ``train.spread_loss`` (``name``; ``measure`` gives m statistics, then their squares): same seed, same
+    steps, G's statistics move, in units of a spread (``spread``, or each one's over G's samples), toward a target
+    one spread above and one below where they start, more than without the term; the first step's gap is ~1 spread;
+    the term's refusals."""
+    from fitme_cli.reflectance.gan.train import _SPREAD_FLOOR
+
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def spread_of(base):
+        m, sq = base.chunk(2)
+        sd = (sq - m.square()).clamp_min(0).sqrt() if spread is None else torch.full_like(m, spread)
+        return m, sd.clamp_min(_SPREAD_FLOOR)
+
+    def moved(w, sign):
+        def target_of(base):  # the means one spread over or under
+            m, sd = spread_of(base)
+            return torch.cat([m + sign * sd, sd.square() + (m + sign * sd).square()])
+
+        base, now, out = _pulled(name, w, measure, target_of, regions, _tiny_data(), z)
+        m, sd = spread_of(base)
+        return float(((now.chunk(2)[0] - m) / sd).mean()), out
+
+    off, l_off = moved(0.0, 1)
+    up, l_up = moved(weight, 1)
+    down, _ = moved(weight, -1)
+    assert up > off + 0.05 and down < off - 0.05, (up, off, down)
+    assert f"{name}_gap" not in l_off[0] and l_up[0][f"{name}_gap"] == pytest.approx(1.0, abs=0.3)
+    _assert_region_term_refusals(name, _tiny_data(), run_dir)
+
+
 def test_relief_weight_moves_the_fakes_relief(tmp_path):
     """Same seed, same steps: with the relief term G's albedo-normal correlation moves toward a target above and
     one below where it starts; it needs its regions and target, and bad settings are refused."""
@@ -1289,6 +1321,198 @@ def test_texel_neighbour_is_the_texel_maps_finest_band_neighbours_and_pulls(tmp_
                                                 m.specular, x[:, 4:6]], 1))
     torch.testing.assert_close(_texel_neighbour(x, regions, TINY), region_band_neighbour(maps, regions).flatten(1))
     _check_shifted_pull("texel_neighbour", lambda y, r: _texel_neighbour(y, r, TINY), regions, _tiny_data(), tmp_path, 0.2)
+
+
+def test_region_band_statistics_match_references_names_flat_gradients_and_bad_input():
+    """Each statistic equals numpy's or scipy's over the region's texels of its band (log variance, skewness, log
+    kurtosis, pair correlation), the neighbour column is ``region_band_neighbour``'s along u and the last are
+    ``nyquist_log_ratio``; ``band_statistic_names`` names every column once; one channel has no pairs; a flat map gives
+    0 and the logs' floor with a finite gradient; float64 gradients; the screen's features are these of ``texel_maps``;
+    bad input refused."""
+    from scipy.stats import kurtosis, skew
+
+    from fitme_cli.reflectance.gan.metrics import (BAND_STATISTICS, _bandpass, band_statistic_names, nyquist_log_ratio,
+                                                   region_band_neighbour, region_band_statistics)
+    from fitme_cli.reflectance.gan.screen import screen_features
+    from fitme_cli.reflectance.gan.train import texel_maps
+
+    r, levels = 32, 2
+    regions = _two_regions(r)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 3, r, r, generator=g, dtype=torch.float64)
+    got = region_band_statistics(x, regions, levels)
+    names = band_statistic_names(("a", "b", "c"), ("left", "right"), levels)
+    assert got.shape == (2, levels * (4 * 3 * 2 + 3 * 2) + 3) and len(names) == got.shape[1] == len(set(names))
+    col = {n: j for j, n in enumerate(names)}
+    bands = _bandpass(x, levels)
+    for level in range(levels):
+        for j, (lab, side) in enumerate(((2, "left"), (7, "right"))):
+            m = (regions == lab).numpy()
+            for i in range(2):
+                v = [bands[level][i, c].numpy()[m] for c in range(3)]
+                want = {f"band{level} log_variance b {side}": np.log(v[1].var()),
+                        f"band{level} skew c {side}": skew(v[2]),
+                        f"band{level} log_kurtosis a {side}": np.log(kurtosis(v[0], fisher=False)),
+                        f"band{level} correlation a-c {side}": np.corrcoef(v[0], v[2])[0, 1],
+                        f"band{level} neighbour b {side}": float(region_band_neighbour(x, regions, level)[i, j, 1, 0])}
+                for n, w in want.items():
+                    assert float(got[i, col[n]]) == pytest.approx(w, abs=1e-9), n
+    torch.testing.assert_close(got[:, -3:], nyquist_log_ratio(x))
+    one = region_band_statistics(x[:, :1], regions, levels)
+    assert one.shape == (2, levels * 4 * 2 + 1)
+    assert len(band_statistic_names(("a",), ("l", "r"), levels)) == one.shape[1]
+    flat = torch.full((1, 2, r, r), 0.5, requires_grad=True)
+    out = region_band_statistics(flat, regions, levels)
+    out.sum().backward()
+    logs = torch.tensor([("log_" in n) for n in band_statistic_names(("a", "b"), ("l", "r"), levels)])
+    assert torch.isfinite(flat.grad).all() and out[0, ~logs].abs().max() == 0
+    torch.testing.assert_close(out[0, logs], torch.full((int(logs.sum()),), math.log(1e-20)))
+    assert BAND_STATISTICS == ("log_variance", "skew", "log_kurtosis", "neighbour")
+    x64 = torch.randn(1, 2, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a: region_band_statistics(a, _two_regions(), 2), (x64,))
+    y = torch.randn(2, 7, 16, 16, generator=g).clamp(-1, 1)
+    feats, _ = screen_features(y, _two_regions(), TINY)
+    np.testing.assert_allclose(feats, region_band_statistics(texel_maps(y, TINY).double(), _two_regions()).numpy())
+    with pytest.raises(ValueError, match="R divisible by 2\\^levels"):
+        region_band_statistics(x, regions, 6)
+    with pytest.raises(ValueError, match="levels 0"):
+        region_band_statistics(x, regions, 0)
+    with pytest.raises(ValueError, match="uint8 regions matching them"):
+        region_band_statistics(x, regions[:16, :16])
+
+
+def test_mouth_rows_measure_is_the_lips_and_rings_row_profiles_and_pulls(tmp_path):
+    """The mouth-rows measure is ``row_profile`` of ``texel_maps``' log luminance and chromaticity over the layout's
+    lips and over the skin ring around them, then its absolute value, blind to the specular and the normals; a greener
+    ring row shows on its row; with the term G's profile moves toward a target above and one below; refusals as every
+    per-region term's."""
+    from fitme_cli.reflectance.gan.data import load_regions
+    from fitme_cli.reflectance.gan.metrics import row_profile
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _mouth, _mouth_rows, texel_maps
+    from fitme_cli.shape.regions import REGIONS
+
+    lips, ring = _mouth(32)
+    labels = load_regions(32)
+    assert bool(lips.any()) and bool(ring.any()) and not bool((lips & ring).any())
+    assert bool((labels[lips] == REGIONS.index("lips")).all()) and bool((labels[ring] == REGIONS.index("skin")).all())
+    near = F.max_pool2d(lips[None, None].float(), 3, 1, 1)[0, 0] > 0  # 1 texel at 32^2
+    assert bool(near[ring].all())
+    x = _tiny_data(r=32).float()
+    got = _mouth_rows(x, None, TINY)
+    maps = texel_maps(x, TINY)[:, :3]
+    profile = torch.cat([row_profile(maps, lips), row_profile(maps, ring)], 1)
+    torch.testing.assert_close(got, torch.cat([profile.flatten(1), profile.abs().flatten(1)], 1))
+    other = x.clone()
+    other[:, 3:] = -other[:, 3:]
+    torch.testing.assert_close(_mouth_rows(other, None, TINY), got)
+    greener = decode_maps(GanImages.split(x), TINY)
+    row = int(ring.sum(1).argmax())  # the ring's fullest row
+    greener.albedo[:, 1, row][:, ring[row]] *= 1.2
+    k_lips, k_ring = int(lips.any(1).sum()), int(ring.any(1).sum())
+    shift = (_mouth_rows(encode_maps(greener, TINY).cat(), None, TINY) - got)[:, :(k_lips + k_ring) * 3]
+    shift = shift.view(16, k_lips + k_ring, 3)
+    assert shift[:, :k_lips].abs().max() < 1e-5  # the lips are not the ring
+    share = float(ring[row].sum() / ring.sum())  # red-green: that row down by log 1.2, the ring's mean by its share
+    want = torch.full((k_ring,), math.log(1.2) * share)
+    want[int(ring.any(1)[:row].sum())] -= math.log(1.2)
+    torch.testing.assert_close(shift[:, k_lips:, 1], want.expand(16, k_ring), atol=3e-3, rtol=0)
+    # a profile's rows average to 0, so the pull is checked on its absolute half: raised by 0.5, or the rows made flat
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+    half = sum(int(m.any(1).sum()) for m in _mouth(16)) * 3  # TINY's resolution
+
+    def run(weight, target_of):
+        base, now, out = _pulled("mouth_rows", weight, lambda y, r: _mouth_rows(y, r, TINY), target_of, _two_regions(),
+                                 _tiny_data(), z)
+        return float((now - base)[half:].mean()), float(base[half:].mean()), out
+
+    off, _, l_off = run(0.0, lambda b: b)
+    up, _, l_up = run(20.0, lambda b: torch.cat([b[:half], b[half:] + 0.5]))
+    flat, start, _ = run(20.0, torch.zeros_like)
+    assert up > off + 0.05 and flat < off - 0.2 * start, (up, off, flat, start)
+    assert "mouth_rows_gap" not in l_off[0] and l_up[0]["mouth_rows_gap"] == pytest.approx(0.25, abs=0.05)
+    _assert_region_term_refusals("mouth_rows", _tiny_data(), tmp_path)
+
+
+def test_screen_term_gaps_in_the_datas_spreads_and_pulls_every_statistic(tmp_path):
+    """The screen measure is ``region_band_statistics`` of ``texel_maps`` and their squares; its gaps are the mean's
+    distance in the data's spreads (from the squares), floored spreads and capped gaps; the loss's gradient on each
+    statistic is -2 z / sd / B and none on the squares; with the term G's statistics move, in their spreads, toward a
+    target one spread above and one below; refusals as every per-region term's, and of bands out of 1-4."""
+    from fitme_cli.reflectance.gan.metrics import region_band_statistics
+    from fitme_cli.reflectance.gan.train import (_SPREAD_FLOOR, _Z_CAP, _screen_statistics, _spread_gap, _spread_z,
+                                                 spread_loss, texel_maps)
+
+    regions = _two_regions()
+    x = _tiny_data().float()
+    f = region_band_statistics(texel_maps(x, TINY), regions, 2)
+    torch.testing.assert_close(_screen_statistics(x, regions, TINY, 2), torch.cat([f, f.square()], 1))
+    # means, then mean squares: spreads 0.5, ~0, 2
+    target = torch.tensor([1.0, 2.0, 0.0, 1.0 + 0.25, 4.0 + 1e-8, 4.0], dtype=torch.float64)
+    running = torch.tensor([0.0, 2.0001, -10.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    z, sd = _spread_z(running, target)
+    torch.testing.assert_close(sd, torch.tensor([0.5, _SPREAD_FLOOR, 2.0], dtype=torch.float64))
+    torch.testing.assert_close(z, torch.tensor([2.0, -0.1, _Z_CAP], dtype=torch.float64))
+    assert _spread_gap(running, target) == pytest.approx((2.0 + 0.1 + 3.0) / 3)
+    stats = torch.randn(4, 6, dtype=torch.float64, requires_grad=True)
+    spread_loss(stats, running, target).backward()
+    torch.testing.assert_close(stats.grad[:, :3], (-2 * z / sd / 4).expand(4, 3))
+    assert stats.grad[:, 3:].abs().max() == 0
+    _check_spread_pull("screen", lambda y, r: _screen_statistics(y, r, TINY, 2), regions, tmp_path, 0.5)
+    for bad in (0, 5):
+        with pytest.raises(ValueError, match=f"screen_levels must be 1 to 4, got {bad}"):
+            TrainSettings(screen_levels=bad)
+
+
+def test_region_quantiles_match_numpy_gradients_and_bad_input():
+    """Each region's quantiles equal numpy's (linear) over its texels, per sample and channel; a constant map gives
+    its value; the gradient reaches the order statistics' texels only; float64 gradients; bad input refused."""
+    from fitme_cli.reflectance.gan.metrics import region_quantiles
+
+    regions = _two_regions()
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 2, 16, 16, generator=g, dtype=torch.float64)
+    qs = (0.0, 0.01, 0.5, 1.0)
+    got = region_quantiles(x, regions, qs)
+    assert got.shape == (2, 2, 2, 4)
+    for j, lab in enumerate((2, 7)):
+        m = (regions == lab).numpy()
+        for i in range(2):
+            for c in range(2):
+                np.testing.assert_allclose(got[i, j, c].numpy(), np.quantile(x[i, c].numpy()[m], qs))
+    torch.testing.assert_close(region_quantiles(torch.full((1, 1, 16, 16), 0.3), regions, qs),
+                               torch.full((1, 2, 1, 4), 0.3))
+    leaf = x[:1, :1].clone().requires_grad_(True)
+    region_quantiles(leaf, regions, (1.0,))[0, 0, 0, 0].backward()  # the left region's maximum: one texel
+    assert int((leaf.grad != 0).sum()) == 1 and float(leaf.grad.sum()) == 1.0
+    x64 = torch.rand(1, 1, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a: region_quantiles(a, regions, (0.1, 0.5, 0.9)), (x64,))
+    with pytest.raises(ValueError, match="levels in \\[0, 1\\]"):
+        region_quantiles(x, regions, (1.5,))
+    with pytest.raises(ValueError, match="levels in"):
+        region_quantiles(x, regions, ())
+    with pytest.raises(ValueError, match="uint8 regions matching them"):
+        region_quantiles(x, regions[:8, :8], qs)
+
+
+def test_specular_quantile_measure_is_the_specular_region_quantiles_and_pulls(tmp_path):
+    """The specular-quantile measure is ``region_quantiles`` of the decoded specular at ``_SPECULAR_QUANTILES`` and
+    their squares, blind to the albedo and the normals; with the term G's quantiles move, in their spreads, toward a
+    target one spread above and one below; refusals as every per-region term's."""
+    from fitme_cli.reflectance.gan.metrics import region_quantiles
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _SPECULAR_QUANTILES, _specular_quantiles
+
+    regions = _two_regions()
+    x = _tiny_data().float()
+    q = region_quantiles(decode_maps(GanImages.split(x), TINY).specular, regions, _SPECULAR_QUANTILES).flatten(1)
+    got = _specular_quantiles(x, regions, TINY)
+    torch.testing.assert_close(got, torch.cat([q, q.square()], 1))
+    other = x.clone()
+    other[:, :3], other[:, 4:] = -other[:, :3], -other[:, 4:]
+    torch.testing.assert_close(_specular_quantiles(other, regions, TINY), got)
+    # a fresh G's specular hardly varies from sample to sample: the target is one fixed spread of 0.02 away
+    _check_spread_pull("specular_quantile", lambda y, r: _specular_quantiles(y, r, TINY), regions, tmp_path, 0.5, 0.02)
 
 
 def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
@@ -3723,7 +3947,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -3785,6 +4009,11 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "normal_symmetry_gap" not in lines[0]
     assert state.train.texel_neighbour_weight == 2.0 and lines[-1]["texel_neighbour_gap"] > 0
     assert "texel_neighbour_gap" not in lines[0]
+    assert state.train.mouth_rows_weight == 3.0 and lines[-1]["mouth_rows_gap"] > 0 and "mouth_rows_gap" not in lines[0]
+    assert (state.train.screen_weight, state.train.screen_levels) == (0.01, 2) and lines[-1]["screen_gap"] > 0
+    assert "screen_gap" not in lines[0]
+    assert state.train.specular_quantile_weight == 0.5 and lines[-1]["specular_quantile_gap"] > 0
+    assert "specular_quantile_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -3955,7 +4184,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "eye_near_bands_by_half", "albedo_specular_link_by_region",
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
                       "beard_band_rms_bearded", "nyquist_log_ratio", "relief_band_by_region",
-                      "normal_symmetry_by_region", "texel_neighbour_by_region"}
+                      "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -4075,6 +4304,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert all(0 <= q[0] <= q[1] for v in rows.values() for q in v["sample_max_abs_q50_q90"])
     # the data's forehead has no rows of their own colour: its mean profile is flat next to each sample's grain
     assert max(rows["data"]["mean_profile_max_abs"]) < max(rows["data"]["sample_max_abs_q50_q90"][0]), rows
+    mouth = m["mouth_row_log_albedo"]  # per part and side: as the forehead's, for log luminance and chromaticity
+    assert list(mouth) == ["lips", "ring"] and all(list(v) == ["data", "gan"] for v in mouth.values())
+    assert all(len(r["mean_profile_max_abs"]) == len(r["sample_max_abs_q50_q90"]) == 3 and 0 <= q[0] <= q[1]
+               for v in mouth.values() for r in v.values() for q in r["sample_max_abs_q50_q90"])
     lattice = m["texel_lattice"]  # per channel and part; the data's parities are near 1 (its maps are smooth at 64^2)
     assert list(lattice) == ["albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"]
     assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())

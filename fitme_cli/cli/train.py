@@ -52,7 +52,8 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "eye_ring_weight", "edge_sharpness_weight", "specular_slope_weight", "forehead_rows_weight",
                 "albedo_specular_link_weight", "hairline_edge_weight", "hairline_specks_weight",
                 "beard_band_weight", "relief_band_weight", "nyquist_weight",
-                "normal_symmetry_weight", "texel_neighbour_weight",
+                "normal_symmetry_weight", "texel_neighbour_weight", "mouth_rows_weight", "screen_weight", "screen_levels",
+                "specular_quantile_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -225,6 +226,20 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="Pull how smooth each region's finest band runs from texel to texel (its correlation with the "
                    "next texel along u and v; log luminance and chromaticity, specular, normals x and y) to the "
                    "data's (not in the paper; may change on --resume). [0]")
+@click.option("--mouth-rows-weight", type=click.FloatRange(min=0),
+              help="Pull each row's log luminance and chromaticity on the lips and on the skin around them, against "
+                   "the whole lips' or ring's, to the data's: against bands across the lip and casts around the mouth "
+                   "(not in the paper; may change on --resume). [0]")
+@click.option("--screen-weight", type=click.FloatRange(min=0),
+              help="Pull every per-region band statistic of the screen (variance, skewness, kurtosis, neighbour and "
+                   "pair correlations, Nyquist ratio) to the data's mean, in units of the data's spread (not in the "
+                   "paper; may change on --resume; ~0.5 s per step). [0]")
+@click.option("--screen-levels", type=click.IntRange(1, 4),
+              help="Finest Laplacian bands the screen term measures. [3]")
+@click.option("--specular-quantile-weight", type=click.FloatRange(min=0),
+              help="Pull each region's quantiles of G's specular (0.1 % to 99 %) to the data's, in units of the "
+                   "data's spread: against a darkest specular too light or too dark (not in the paper; may change on "
+                   "--resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

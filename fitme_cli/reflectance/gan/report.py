@@ -27,8 +27,8 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       dark_speck_depth, nyquist_log_ratio)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_RELIEF_PARTS, TEXEL_MAPS, _normal_symmetry, _relief_bands, _texel_neighbour, copy_generator,
-                    load_checkpoint)
+from .train import (_RELIEF_PARTS, TEXEL_MAPS, _mouth, _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour,
+                    copy_generator, load_checkpoint)
 
 __all__ = ["evaluate", "main"]
 
@@ -113,6 +113,9 @@ class _Side:
     # (N, K, 2) per sample ``metrics.row_profile`` of the albedo's ``metrics.log_chroma`` over the forehead's K rows (the
     # hairline band carved out)
     forehead_rows: torch.Tensor
+    # (N, K, 3) per sample the mouth-rows term's signed profile (``train._mouth_rows``): log luminance and the two log
+    # chromaticity axes per row of the lips, then of the skin ring around them
+    mouth_rows: torch.Tensor
     hairline_edge: torch.Tensor  # (N,) per sample ``metrics.hairline_edge_coherence`` over ``data.hairline_reach``
     # (N, 2) per sample ``metrics.dark_speck_depth`` over the hairline band, then over the scalp behind it
     # (``data.hairline_zones`` 1 and 2)
@@ -126,7 +129,7 @@ class _Side:
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
-_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows",
+_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows", "mouth_rows",
                "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist")
 
@@ -148,11 +151,11 @@ def _slope_row(slope: torch.Tensor) -> dict[str, list[float]]:
 
 
 def _forehead_row(rows: torch.Tensor) -> dict[str, list[float]]:
-    """(N, K, 2) ``_Side.forehead_rows`` -> per axis (red-green, yellow-blue): the largest |mean over samples| of a row,
-    and the quantiles 50 / 90 % over samples of each sample's largest row |deviation|."""
+    """(N, K, C) row profiles (``_Side.forehead_rows``: C 2, red-green and yellow-blue) -> per channel: the largest
+    |mean over samples| of a row, and the quantiles 50 / 90 % over samples of each sample's largest row |deviation|."""
     peak = rows.double().abs().amax(1)
     return {"mean_profile_max_abs": [round(float(v), 3) for v in rows.double().mean(0).abs().amax(0)],
-            "sample_max_abs_q50_q90": [_quantiles(peak[:, c], (0.5, 0.9)) for c in range(2)]}
+            "sample_max_abs_q50_q90": [_quantiles(peak[:, c], (0.5, 0.9)) for c in range(rows.shape[2])]}
 
 
 def _eye_ring_row(ring: torch.Tensor) -> dict[str, list]:
@@ -203,6 +206,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     from ...shape.regions import REGIONS
 
     forehead = edges == REGIONS.index("forehead")  # the hairline band carved out, as the forehead-rows term's
+    mouth_k = sum(int(m.any(1).sum()) for m in _mouth(regions.shape[0]))  # the lips' and the ring's rows
     halves = eye_ring_halves(regions.shape[0])
     hairline = (hairline_reach(regions.shape[0]), *hairline_references(regions.shape[0]))
     beard_labels = torch.where(beard, 0, 255).to(torch.uint8)
@@ -248,6 +252,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "specular_slope": region_slope_link(x[:, 3:4], x[:, 4:7], regions),
             "albedo_specular_link": region_band_correlation(x[:, :3].mean(1), x[:, 3:4], regions)[..., 0],
             "forehead_rows": row_profile(chroma, forehead),
+            "mouth_rows": _mouth_rows(net, regions, G.settings)[:, :mouth_k * 3].view(len(x), mouth_k, 3),
             "hairline_edge": hairline_edge_coherence(x[:, :3], *hairline),
             "nyquist": nyquist_log_ratio(grain_maps),
             "hairline_specks": torch.stack([dark_speck_depth(x[:, :3], zones == z, *hairline[1:]) for z in (1, 2)], 1),
@@ -359,6 +364,7 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
     band_ratio = region_albedo_bands(gan.features).mean(0) / np.maximum(region_albedo_bands(real.features).mean(0), 1e-12)
     # where in frequency the albedo's finest grain sits (a lattice is a peak)
     spectrum = _spectrum_rows(gan.spectra, real.spectra, half, regions)
+    lips_k = int(_mouth(regions.shape[0])[0].any(1).sum())  # the lips' rows, then the ring's, in ``_Side.mouth_rows``
     with torch.no_grad():
         ratios = [interpolation_smoothness(G.synthesis(w, noise_mode="const").cat())
                   for w in _walks(G, 8, 16, seed + 1, truncation_psi)]
@@ -467,6 +473,11 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
         "forehead_row_log_chroma": {side: _forehead_row(m.forehead_rows) for side, m in (("data", real), ("gan", gan))},
+        # a band across the lip, a cast around the mouth (the 329.18 kimg judges): the same over the lips' rows and over
+        # the skin ring around them (``train._mouth_rows``), per map (log luminance, red-green, yellow-blue)
+        "mouth_row_log_albedo": {part: {side: _forehead_row(m.mouth_rows[:, rows])
+                                        for side, m in (("data", real), ("gan", gan))}
+                                 for part, rows in (("lips", slice(0, lips_k)), ("ring", slice(lips_k, None)))},
         # albedo grain that is not the specular's (the 308.28 kimg judge M's measure): per region, the correlation of the
         # albedo's finest band (mean of r, g, b) with the specular's (``metrics.region_band_correlation``), the mean
         # over samples and the 10th and 90th percentiles

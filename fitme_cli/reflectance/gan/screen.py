@@ -23,8 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .metrics import (_bandpass, _paired_region_correlation, _region_weights, nyquist_log_ratio, region_band_neighbour,
-                      region_band_skew, region_labels)
+from .metrics import band_statistic_names, region_band_statistics, region_labels
 from .networks import GanSettings
 from .train import TEXEL_MAPS, texel_maps
 
@@ -42,8 +41,8 @@ def _maps(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
 def screen_features(x: torch.Tensor, regions: torch.Tensor, s: GanSettings, names: tuple[str, ...] | None = None
                     ) -> tuple[np.ndarray, list[str]]:
     """x: (N, 7, R, R) network space, R divisible by 16; regions: (R, R) uint8 labels (255 unmapped); ``names``: one per
-    region of ``region_labels`` (default "region{label}") -> ((N, F) float64 statistics, their F names). A flat region's
-    variance-normalised statistics are 0."""
+    region of ``region_labels`` (default "region{label}") -> ((N, F) float64 ``metrics.region_band_statistics`` of the
+    ``MAPS``, their F names). A flat region's variance-normalised statistics are 0."""
     if x.ndim != 4 or x.shape[1] != 7 or x.shape[-1] != x.shape[-2] or x.shape[-1] % 2 ** _LEVELS:
         raise ValueError(f"expected (N, 7, R, R) maps with R divisible by {2 ** _LEVELS}, got {tuple(x.shape)}")
     if regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
@@ -52,33 +51,9 @@ def screen_features(x: torch.Tensor, regions: torch.Tensor, s: GanSettings, name
     names = names or tuple(f"region{lab}" for lab in labels)
     if len(names) != len(labels):
         raise ValueError(f"expected {len(labels)} region names, got {len(names)}")
-    m = _maps(x, s)
-    w = _region_weights(regions, m).T  # (R*R, k)
-    feats: list[torch.Tensor] = []
-    out_names: list[str] = []
-    pairs = [(i, j) for i in range(len(MAPS)) for j in range(i + 1, len(MAPS))]
-
-    def safe(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-        return torch.where(den > 1e-20, num / den.clamp_min(1e-20), torch.zeros_like(num))
-
-    first, second = ([p[k] for p in pairs] for k in (0, 1))
-    for level, band in enumerate(_bandpass(m, _LEVELS)):
-        b = band.flatten(2)  # (N, C, R*R)
-        e1, e2, e3, e4 = (b ** p @ w for p in (1, 2, 3, 4))  # (N, C, k) raw moments
-        var = (e2 - e1 ** 2).clamp_min(0)
-        m4 = e4 - 4 * e1 * e3 + 6 * e1 ** 2 * e2 - 3 * e1 ** 4
-        skew = region_band_skew(m, regions, level).transpose(1, 2)  # (N, C, k)
-        nbr = region_band_neighbour(m, regions, level)[..., 0].transpose(1, 2)  # along u, (N, C, k)
-        for stat, v in (("log_variance", var.clamp_min(1e-20).log()), ("skew", skew),
-                        ("log_kurtosis", safe(m4, var ** 2).clamp_min(1e-20).log()), ("neighbour", nbr)):
-            feats.append(v.flatten(1))
-            out_names += [f"band{level} {stat} {c} {r}" for c in MAPS for r in names]
-        # (N, k, pairs) -> pair by pair, each over the regions
-        feats.append(_paired_region_correlation(band[:, first], band[:, second], regions).transpose(1, 2).flatten(1))
-        out_names += [f"band{level} correlation {MAPS[i]}-{MAPS[j]} {r}" for i, j in pairs for r in names]
-    feats.append(nyquist_log_ratio(m))
-    out_names += [f"nyquist {c}" for c in MAPS]
-    return torch.cat(feats, 1).numpy(), out_names
+    with torch.no_grad():
+        feats = region_band_statistics(_maps(x, s), regions, _LEVELS)
+    return feats.numpy(), band_statistic_names(MAPS, names, _LEVELS)
 
 
 def auc(a: np.ndarray, b: np.ndarray) -> float:
