@@ -8,7 +8,9 @@ Laplacian band (``metrics._bandpass``; 0: 1-2 texels, 1: 2-4, 2: 4-8, 3: 8-16) a
 of six maps: the linear albedo's log luminance, its two ``metrics.log_chroma`` axes, the linear specular, the normals'
 x and y (``train.texel_maps``). Per map: log variance, skewness, log kurtosis, the correlation of neighbours along u
 (``metrics.region_band_neighbour``); per pair of maps: the correlation; per map, over the whole map:
-``metrics.nyquist_log_ratio``. Two halves of the data give each one's AUC by chance.
+``metrics.nyquist_log_ratio``. Two halves of the data give each one's AUC by chance. The statistics are
+``metrics.region_band_statistics``, which the BRDF-GAN's screen term (``--screen-weight``) pulls to the data's: on a G
+trained with it, the screen reads how well the term fit, not a fresh tell.
 
     python -m fitme_cli.reflectance.gan.screen CHECKPOINT_OR_MODELS DATA_DIR [-n 128] [--top 40] [--json OUT]
 """
