@@ -761,14 +761,18 @@ def region_band_skew(x: torch.Tensor, regions: torch.Tensor, level: int = 0) -> 
     Laplacian band ``level`` (``_bandpass``; 0: the finest). The data's normals are a height field's slopes, whose
     bumps tilt both ways alike: ~0 in every region (docs/brdf_gan.md). A flat region gives 0. Differentiable."""
     _check_band_maps(x, regions, level)
-    w = _region_weights(regions, x).T  # (R*R, k)
-    band = _bandpass(x, level + 1)[level].flatten(2)  # (N, C, R*R)
+    return _band_skew(_bandpass(x, level + 1)[level], _region_weights(regions, x).T).transpose(1, 2)
+
+
+def _band_skew(band: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """band: (N, C, R, R); w: (R*R, k) ``_region_weights`` transposed -> (N, C, k): ``region_band_skew`` of a band."""
+    band = band.flatten(2)  # (N, C, R*R)
     mean = band @ w  # (N, C, k)
     m2 = band.square() @ w - mean.square()
     m3 = band.pow(3) @ w - 3 * mean * (band.square() @ w) + 2 * mean.pow(3)
     # m3 / m2^1.5 without the root's infinite gradient at a flat region (as ``_paired_region_correlation``)
     flat = m2 <= 0
-    return (m3 / torch.where(flat, torch.ones_like(m2), m2).pow(1.5) * ~flat).transpose(1, 2)
+    return m3 / torch.where(flat, torch.ones_like(m2), m2).pow(1.5) * ~flat
 
 
 def region_band_neighbour(x: torch.Tensor, regions: torch.Tensor, level: int = 0) -> torch.Tensor:
@@ -780,18 +784,22 @@ def region_band_neighbour(x: torch.Tensor, regions: torch.Tensor, level: int = 0
     G_ema's finest specular band was smoother than the data's in every region (skin 0.17 against 0.09), and its
     chromaticity on the scalp (0.36-0.38 against 0.15-0.16; docs/brdf_gan.md). A flat region gives 0. Differentiable."""
     _check_band_maps(x, regions, level)
-    w = _region_weights(regions, x).T  # (R*R, k)
-    band = _bandpass(x, level + 1)[level]
+    return _band_neighbour(_bandpass(x, level + 1)[level], _region_weights(regions, x).T, (3, 2)).transpose(1, 2)
+
+
+def _band_neighbour(band: torch.Tensor, w: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
+    """band: (N, C, R, R); w: (R*R, k) ``_region_weights`` transposed; dims: 3 along u (columns), 2 along v (rows) ->
+    (N, C, k, len(dims)): ``region_band_neighbour`` of a band along each of ``dims``."""
     b = band.flatten(2)  # (N, C, R*R)
     mean = b @ w  # (N, C, k)
     var = b.square() @ w - mean.square()
     flat = var <= 0
     out = []
-    for dim in (3, 2):  # along u (columns), then v (rows)
+    for dim in dims:
         nb = torch.roll(band, -1, dims=dim).flatten(2)
         cov = (b * nb) @ w - mean * (nb @ w)
         out.append(cov / torch.where(flat, torch.ones_like(var), var) * ~flat)
-    return torch.stack(out, -1).transpose(1, 2)
+    return torch.stack(out, -1)
 
 
 def _paired_region_correlation(a: torch.Tensor, b: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
@@ -836,8 +844,8 @@ def region_band_statistics(x: torch.Tensor, regions: torch.Tensor, levels: int =
         e1, e2, e3, e4 = (b ** p @ w for p in (1, 2, 3, 4))  # (N, C, k) raw moments
         var = (e2 - e1 ** 2).clamp_min(0)
         m4 = e4 - 4 * e1 * e3 + 6 * e1 ** 2 * e2 - 3 * e1 ** 4
-        skew = region_band_skew(x, regions, level).transpose(1, 2)  # (N, C, k)
-        nbr = region_band_neighbour(x, regions, level)[..., 0].transpose(1, 2)  # along u
+        skew = _band_skew(band, w)  # (N, C, k)
+        nbr = _band_neighbour(band, w, (3,))[..., 0]  # along u
         for v in (var.clamp_min(1e-20).log(), skew, safe(m4, var ** 2).clamp_min(1e-20).log(), nbr):
             feats.append(v.flatten(1))
         if first:  # (N, k, pairs) -> pair by pair, each over the regions
