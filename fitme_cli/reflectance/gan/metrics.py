@@ -50,7 +50,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
            "region_edge_sharpness", "region_slope_link", "row_profile", "hairline_edge_coherence",
            "dark_speck_depth", "nyquist_log_ratio", "region_band_skew", "region_band_neighbour",
-           "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles"]
+           "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -882,6 +882,19 @@ def region_quantiles(x: torch.Tensor, regions: torch.Tensor, qs: tuple[float, ..
     flat, values = regions.flatten().to(x.device), x.flatten(2)
     return torch.stack([torch.quantile(values[..., flat == lab], q, dim=-1).permute(1, 2, 0)
                         for lab in region_labels(regions)], 1)
+
+
+def local_range(x: torch.Tensor, size: int = 3) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units -> (N, C, R, R) same dtype, >= 0: per texel and channel, the largest minus the
+    smallest value in the ``size`` x ``size`` window centred on it (clipped at the map's borders). The 338.02 kimg judge
+    S's measure: on the sheet, 0.38 % of the data's normal texels sat in 3 x 3 windows that vary by at most 2 of 255
+    levels, G's 0.02 %; a crescent along the temples where the data's normals are flat, textured by G
+    (docs/brdf_gan.md). Differentiable (through each window's largest and smallest texel)."""
+    if x.ndim != 4 or not x.is_floating_point() or size < 1 or size % 2 == 0:
+        raise ValueError(f"local_range: expected float (N, C, R, R) maps and an odd size >= 1, got {tuple(x.shape)} "
+                         f"{x.dtype} and size {size}")
+    pad = size // 2
+    return F.max_pool2d(x, size, 1, pad) + F.max_pool2d(-x, size, 1, pad)
 
 
 def region_slope_link(specular: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:

@@ -28,7 +28,7 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_RELIEF_PARTS, TEXEL_MAPS, _mouth, _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour,
-                    copy_generator, load_checkpoint)
+                    copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -126,6 +126,11 @@ class _Side:
     # (2 * n, 3) mean over samples, log linear albedo: ``metrics.ring_profile`` over each half of
     # ``data.eye_ring_halves`` (the near bands above the openings, then below; n in all), then its absolute value
     eye_halves: torch.Tensor
+    # (k, 3) mean over samples, per region: the share of texels whose ``train.sheet_ranges`` (albedo, specular,
+    # normals) is at most 2 of 255 levels, the maps first rounded to the 8 bits the data stores albedo and specular
+    # in (``_stored``), then the mean range
+    sheet_flat: torch.Tensor
+    sheet_range: torch.Tensor
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
@@ -197,6 +202,21 @@ def _spectrum_rows(gan: torch.Tensor, real: torch.Tensor, half: int, regions: to
             for j, lab in enumerate(region_labels(regions)) if bool(sb[:, j].sum() > 0)}
 
 
+# the sheet's flat share (the 338.02 kimg judge S): a window varies by at most this many of 255 levels
+_FLAT_LEVELS = 2
+_SHEET_MAPS = ("albedo", "specular", "normals")  # ``train.sheet_ranges``' channels
+
+
+def _stored(net: torch.Tensor, s) -> torch.Tensor:
+    """(B, 7, R, R) network space -> same: the albedo rounded to 8-bit sRGB and the specular to 8-bit linear, as
+    ``fitme dataset`` stores them (the data's are there already), the normals (16 bits there) as they are."""
+    from .networks import decode_specular
+
+    albedo = (((net[:, :3] + 1) / 2).clamp(0, 1) * 255).round() / 255 * 2 - 1
+    specular = (decode_specular(net[:, 3:4], s) * 255).round() / 255
+    return torch.cat([albedo, (specular - s.specular_offset) / s.specular_scale, net[:, 4:]], 1)
+
+
 def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncation_psi: float, regions: torch.Tensor,
              mapped: torch.Tensor, skin: torch.Tensor, zones: torch.Tensor, sides: torch.Tensor, features: torch.Tensor,
              beard: torch.Tensor, rings: torch.Tensor, edges: torch.Tensor) -> _Side:
@@ -230,6 +250,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         grain_maps = torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 3:6]], 1)
         log = x[:, :3].clamp_min(1e-3).log()
         near = [ring_profile(log, h) for h in halves if bool((h != 255).any())]  # above the openings, below
+        ranges = sheet_ranges(_stored(net, G.settings), G.settings)
         batch = {
             "spectra": region_spectrum(x[:, :3].mean(1), regions),
             "hairline": region_band_energy(x[:, :3], zones).mean(3),
@@ -263,6 +284,9 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "eye_ring": torch.cat([ring_profile(log, rings), region_moments(log, rings)[:, 0].flip(1)], 1),
             "eye_halves": torch.cat([*near, *(p.abs() for p in near)], 1),
             "edge_sharpness": region_edge_sharpness(x[:, :3].mean(1, keepdim=True).clamp_min(1e-3).log(), edges)[..., 0],
+            # the sheet's final rounding to 8 bits is not applied: half a level at most
+            "sheet_flat": region_moments((ranges <= (_FLAT_LEVELS + 0.5) / 255).float(), regions)[:, :, 0],
+            "sheet_range": region_moments(ranges, regions)[:, :, 0],
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -478,6 +502,16 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "mouth_row_log_albedo": {part: {side: _forehead_row(m.mouth_rows[:, rows])
                                         for side, m in (("data", real), ("gan", gan))}
                                  for part, rows in (("lips", slice(0, lips_k)), ("ring", slice(lips_k, None)))},
+        # flat patches and grain on the sheet (the 338.02 kimg judge S): per map and region, the share of texels whose
+        # 3 x 3 window varies by at most 2 of 255 levels, in % (``_Side.sheet_flat``), and G's mean range over the data's
+        "sheet_flat_share_percent": {name: {_region_name(lab): {side: round(100 * float(m.sheet_flat[j, c]), 3)
+                                                                for side, m in (("data", real), ("gan", gan))}
+                                            for j, lab in enumerate(region_labels(regions))}
+                                     for c, name in enumerate(_SHEET_MAPS)},
+        "sheet_range_ratio": {name: {_region_name(lab): round(float(gan.sheet_range[j, c])
+                                                              / max(float(real.sheet_range[j, c]), 1e-12), 3)
+                                     for j, lab in enumerate(region_labels(regions))}
+                              for c, name in enumerate(_SHEET_MAPS)},
         # albedo grain that is not the specular's (the 308.28 kimg judge M's measure): per region, the correlation of the
         # albedo's finest band (mean of r, g, b) with the specular's (``metrics.region_band_correlation``), the mean
         # over samples and the 10th and 90th percentiles

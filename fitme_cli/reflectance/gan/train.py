@@ -34,15 +34,18 @@ from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussia
                       region_slope_link, region_specular_link, region_spectrum, region_texel_grain, region_texel_tails,
                       ring_profile, row_profile, soft_hair_share, soft_hairline_share, texel_lattice,
                       hairline_edge_coherence, dark_speck_depth, nyquist_log_ratio, region_band_skew,
-                      region_band_neighbour, region_band_statistics, region_quantiles)
-from .networks import Discriminator, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_specular
+                      region_band_neighbour, region_band_statistics, region_quantiles, local_range)
+from .networks import (Discriminator, GanImages, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_maps,
+                       decode_specular)
+from ...ops.srgb import linear_to_srgb
 
 __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "train_step", "save_checkpoint", "load_checkpoint",
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
            "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
            "tail_loss", "spread_loss", "set_branch_noise", "clear_running", "can_compile", "compile_synthesis", "random_crops",
-           "new_patch_discriminator", "sync_patch_discriminator", "focus_texels", "TEXEL_MAPS", "texel_maps"]
+           "new_patch_discriminator", "sync_patch_discriminator", "focus_texels", "TEXEL_MAPS", "texel_maps",
+           "sheet_ranges"]
 
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
@@ -52,7 +55,7 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "chroma_grain", "specular_link", "specular_spectrum", "texel_tail", "eye_ring",
                  "edge_sharpness", "specular_slope", "forehead_rows", "albedo_specular_link", "hairline_edge",
                  "hairline_specks", "beard_band", "relief_band", "nyquist", "normal_symmetry", "texel_neighbour",
-                 "mouth_rows", "screen", "specular_quantile")
+                 "mouth_rows", "screen", "specular_quantile", "range_map", "range_quantile")
 
 
 @dataclass(frozen=True)
@@ -394,6 +397,19 @@ class TrainSettings:
     # 0.008-0.012), its brows' at 0.044 where the data's is 0.071 on every sample (docs/brdf_gan.md). 0: off
     specular_quantile_weight: float = 0.0
     specular_quantile_beta: float = 0.99  # per-step decay of the running quantiles and their squares
+    # not in the paper: per texel, G's running mean of ``sheet_ranges`` (each map's 3 x 3 range as the judge's sheet
+    # shows it) pulled to the data's, relative to it as the detail-map term (``detail_map_loss``). At 338.02 kimg G's
+    # albedo range was 1.18 times the data's at the median texel, higher over all hair, lower along every region's
+    # outline, and its normals' 4 times the data's in a crescent along the temples where the data's are flat: the
+    # judge's flat patches, 0.38 % of the data's normal texels and 0.02 % of G's (docs/brdf_gan.md). 0: off
+    range_map_weight: float = 0.0
+    range_map_beta: float = 0.99  # per-step decay of the running range map
+    # not in the paper: per region, quantiles of ``sheet_ranges`` (``_RANGE_QUANTILES``: the flat share at the low end,
+    # the grain's spread above), pulled as the specular-quantile term (``spread_loss``). The per-texel mean cannot say
+    # whether a texel is flat in some samples and grainy in others or a little grainy in all: the data's dark skins
+    # are flat on the 8-bit sheet, its light ones are not. 0: off
+    range_quantile_weight: float = 0.0
+    range_quantile_beta: float = 0.99  # per-step decay of the running quantiles and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -681,6 +697,13 @@ class TrainState:
     # (``_specular_quantiles``), the specular-quantile term's target, and G's running mean of them
     specular_quantile_target: torch.Tensor | None = None
     running_specular_quantile: torch.Tensor | None = None
+    # (3 * R * R,) float32: the data's mean ``sheet_ranges``, the range-map term's target, and G's running mean of it
+    range_map_target: torch.Tensor | None = None
+    running_range_map: torch.Tensor | None = None
+    # (2 * k * 3 * 8,) float32: the data's mean ``sheet_ranges`` quantiles per region and their mean squares
+    # (``_range_quantiles``), the range-quantile term's target, and G's running mean of them
+    range_quantile_target: torch.Tensor | None = None
+    running_range_quantile: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1218,6 +1241,36 @@ def _specular_quantiles(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) 
     return torch.cat([q, q.square()], 1)
 
 
+def sheet_ranges(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 3, R, R) float32, >= 0, in the sheet's display units (1 = 255 levels):
+    ``metrics.local_range`` (3 x 3) of the maps as ``blind`` shows them: the sRGB albedo (the largest over r, g, b), the
+    specular x3 in sRGB, the unit normals' x and y x2.5 (the larger; not clamped as the sheet's 2.5 n + 0.5: the data's
+    flat crescent is |n| ~0.003, not a clamp). Not rounded to 8 bits as the sheet is: G's ranges read up to one level
+    above what the sheet would show."""
+    x = x.float()
+    albedo = ((x[:, :3] + 1) / 2).clamp(0, 1)
+    specular = linear_to_srgb((3 * decode_specular(x[:, 3:4], s)).clamp(0, 1))
+    normals = 2.5 * decode_maps(GanImages.split(x), s).normals[:, :2]
+    return torch.cat([local_range(albedo).amax(1, keepdim=True), local_range(specular),
+                      local_range(normals).amax(1, keepdim=True)], 1)
+
+
+def _range_map(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 3 * R * R): ``sheet_ranges`` texel by texel. ``regions`` is not used."""
+    return sheet_ranges(x, s).flatten(1)
+
+
+# the low end is the judge's flat share (the data's normals: 0.8 % of the scalp's texels, its albedo: 2-13 % by region)
+_RANGE_QUANTILES = (0.005, 0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.99)
+
+
+def _range_quantiles(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * k * 3 * 8): per region, ``metrics.region_quantiles`` of ``sheet_ranges``
+    at ``_RANGE_QUANTILES``, then their squares (``spread_loss``)."""
+    q = region_quantiles(sheet_ranges(x, s), regions, _RANGE_QUANTILES).flatten(1)
+    return torch.cat([q, q.square()], 1)
+
+
 def _spread_z(running: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """running, target (2m,): m statistics' means, then their mean squares -> ((m,) gaps target - running of the
     means in units of the target's spread (from its squares), capped at ``_Z_CAP``; (m,) that spread, floored at
@@ -1548,9 +1601,9 @@ def _detail_map_scale(target: torch.Tensor) -> torch.Tensor:
 
 
 def detail_map_loss(maps: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """maps: (B, 3 * R * R) of a fake batch (``_detail_map``), running and target (3 * R * R,): ``coherence_loss``
-    of each texel relative to its target (``_detail_map_scale``), as ``band_loss``: the detail of the scalp is ~50
-    times that of the cheeks."""
+    """maps: (B, 3 * R * R) of a fake batch (``_detail_map``, or ``_range_map``), running and target (3 * R * R,):
+    ``coherence_loss`` of each texel relative to its target (``_detail_map_scale``), as ``band_loss``: the detail of
+    the scalp is ~50 times that of the cheeks."""
     return _scaled_loss(maps, running, target, _detail_map_scale(target))
 
 
@@ -1627,17 +1680,20 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "texel_neighbour": lambda x, regions: _texel_neighbour(x, regions, gan),
             "mouth_rows": lambda x, regions: _mouth_rows(x, regions, gan),
             "screen": lambda x, regions: _screen_statistics(x, regions, gan, t.screen_levels),
-            "specular_quantile": lambda x, regions: _specular_quantiles(x, regions, gan)}
+            "specular_quantile": lambda x, regions: _specular_quantiles(x, regions, gan),
+            "range_map": lambda x, regions: _range_map(x, regions, gan),
+            "range_quantile": lambda x, regions: _range_quantiles(x, regions, gan)}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum and
 # specular_spectrum: mean TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the
-# same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map: over ``_detail_map_scale``;
+# same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map and range_map: over
+# ``_detail_map_scale``;
 # tone_band and chroma_band and specular_band, grain, lattice, chroma_grain and beard_band as band; beard,
 # hairline_share, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope, forehead_rows,
 # albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and mouth_rows: mean
-# |running - target|; screen and specular_quantile: mean |gap| in the data's spreads (``_spread_gap``); texel_tail:
+# |running - target|; screen, specular_quantile and range_quantile: mean |gap| in the data's spreads (``_spread_gap``); texel_tail:
 # as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
@@ -1656,7 +1712,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "beard_band": (band_loss, _relative_gap), "relief_band": (coherence_loss, _abs_gap),
                   "nyquist": (coherence_loss, _abs_gap), "normal_symmetry": (coherence_loss, _abs_gap),
                   "texel_neighbour": (coherence_loss, _abs_gap), "mouth_rows": (coherence_loss, _abs_gap),
-                  "screen": (spread_loss, _spread_gap), "specular_quantile": (spread_loss, _spread_gap)}
+                  "screen": (spread_loss, _spread_gap), "specular_quantile": (spread_loss, _spread_gap),
+                  "range_map": (detail_map_loss, _detail_map_gap), "range_quantile": (spread_loss, _spread_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
