@@ -1223,12 +1223,17 @@ _SPREAD_FLOOR = 1e-3
 _Z_CAP = 3.0  # a statistic's gap counts at most this many of the data's spreads: no one statistic rules the term
 
 
+def _with_squares(stats: torch.Tensor) -> torch.Tensor:
+    """(B, m) statistics -> (B, 2m): them, then their squares, the form every ``spread_loss`` measure takes: the data's
+    mean of both gives its per-sample spread."""
+    return torch.cat([stats, stats.square()], 1)
+
+
 def _screen_statistics(x: torch.Tensor, regions: torch.Tensor, s: GanSettings, levels: int) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2F): ``metrics.region_band_statistics`` of ``texel_maps`` (F of them) in the
     ``levels`` finest bands, then their squares: the data's mean of both gives its per-sample spread
     (``spread_loss``)."""
-    f = region_band_statistics(texel_maps(x.float(), s), regions, levels)
-    return torch.cat([f, f.square()], 1)
+    return _with_squares(region_band_statistics(texel_maps(x.float(), s), regions, levels))
 
 
 _SPECULAR_QUANTILES = (0.001, 0.01, 0.1, 0.5, 0.9, 0.99)
@@ -1237,8 +1242,8 @@ _SPECULAR_QUANTILES = (0.001, 0.01, 0.1, 0.5, 0.9, 0.99)
 def _specular_quantiles(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2 * k * 6): per region, ``metrics.region_quantiles`` of the linear specular
     (decoded by ``s``) at ``_SPECULAR_QUANTILES``, then their squares (``spread_loss``)."""
-    q = region_quantiles(decode_specular(x[:, 3:4].float(), s), regions, _SPECULAR_QUANTILES).flatten(1)
-    return torch.cat([q, q.square()], 1)
+    specular = decode_specular(x[:, 3:4].float(), s)
+    return _with_squares(region_quantiles(specular, regions, _SPECULAR_QUANTILES).flatten(1))
 
 
 def sheet_ranges(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
@@ -1267,8 +1272,7 @@ _RANGE_QUANTILES = (0.005, 0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.99)
 def _range_quantiles(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2 * k * 3 * 8): per region, ``metrics.region_quantiles`` of ``sheet_ranges``
     at ``_RANGE_QUANTILES``, then their squares (``spread_loss``)."""
-    q = region_quantiles(sheet_ranges(x, s), regions, _RANGE_QUANTILES).flatten(1)
-    return torch.cat([q, q.square()], 1)
+    return _with_squares(region_quantiles(sheet_ranges(x, s), regions, _RANGE_QUANTILES).flatten(1))
 
 
 def _spread_z(running: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1281,8 +1285,7 @@ def _spread_z(running: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor
 
 
 def spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """stats: (B, 2m) of a fake batch (m statistics, then their squares: ``_screen_statistics``,
-    ``_specular_quantiles``), running and target (2m,): ``coherence_loss`` of each statistic in units of the data's
+    """stats: (B, 2m) of a fake batch (m statistics, then their squares: ``_with_squares``), running and target (2m,): ``coherence_loss`` of each statistic in units of the data's
     per-sample spread (``_spread_z``), so that statistics of any units and spread weigh alike; the squares only carry
     that spread."""
     z, sd = _spread_z(running, target)
@@ -1290,8 +1293,8 @@ def spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor
 
 
 def _spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
-    """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the screen and specular-quantile
-    terms' gap."""
+    """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the gap of every ``spread_loss``
+    term (screen, specular quantiles, range quantiles)."""
     return float(_spread_z(running, target)[0].abs().mean())
 
 
