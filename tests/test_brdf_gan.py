@@ -1612,6 +1612,74 @@ def test_range_quantile_measure_is_the_sheet_ranges_region_quantiles_and_pulls(t
                        first_gap=(0.3, 1.3))
 
 
+def test_eye_flat_masks_are_the_openings_interior_and_the_skin_around_them():
+    """At 256^2 the interior is the openings' texels whose 3 x 3 neighbourhood is all opening (44); below, where no
+    texel has one, the openings themselves; the skin around is ``eye_rings``' bands 3 and 4, outside the openings."""
+    from fitme_cli.reflectance.gan.data import eye_openings, eye_rings
+    from fitme_cli.reflectance.gan.train import _eye_flat_masks
+
+    inside = eye_openings(256).numpy()
+    interior, around = (m.numpy() for m in _eye_flat_masks(256))
+    want = np.zeros_like(inside)
+    for i, j in zip(*np.nonzero(inside)):
+        want[i, j] = inside[i - 1:i + 2, j - 1:j + 2].all()
+    assert interior.sum() == 44 and (interior == want).all()
+    assert (around == np.isin(eye_rings(256).numpy(), (3, 4))).all() and not (around & inside).any()
+    interior16, around16 = _eye_flat_masks(16)
+    assert torch.equal(interior16, eye_openings(16)) and bool(around16.any())
+
+
+def _eye_flat_reference(x: torch.Tensor, interior: np.ndarray, around: np.ndarray) -> torch.Tensor:
+    """The eye-flat statistics sample by sample and texel by texel, in float64."""
+    rows = []
+    for sample in ((x.double()[:, :3] + 1) / 2).clamp(0, 1).numpy():
+        grains = []
+        for i, j in zip(*np.nonzero(interior)):
+            window = sample[:, max(i - 1, 0):i + 2, max(j - 1, 0):j + 2]
+            grains.append(max(float(c.max() - c.min()) for c in window))
+        grain = float(np.mean(grains))
+        inner = sample[:, interior]
+        spread = float(inner.std(1).mean())
+        colour, skin = inner.mean(1), sample[:, around].mean(1)
+        light = float(skin.mean())
+        stats = [grain, grain * light, grain ** 2, spread, spread * light, spread ** 2, *colour, *(colour * skin)]
+        rows.append(stats + [v ** 2 for v in stats])
+    return torch.tensor(rows, dtype=torch.float32)
+
+
+def test_eye_flat_measure_matches_a_texel_loop_reference_known_values_and_gradients():
+    """The eye-flat measure equals a per-texel loop at 256^2 (interior eroded) and 16^2 (the openings); a flat
+    albedo reads no grain and no spread, its colour and colour times skin exactly; blind to the specular and the
+    normals; a float64 gradcheck through it."""
+    from fitme_cli.reflectance.gan.train import _eye_flat, _eye_flat_masks
+
+    g = torch.Generator().manual_seed(4)
+    for r in (256, 16):
+        x = torch.rand(2, 7, r, r, generator=g) * 2 - 1
+        interior, around = (m.numpy() for m in _eye_flat_masks(r))
+        got = _eye_flat(x, None)
+        assert got.shape == (2, 24) and got.dtype == torch.float32
+        torch.testing.assert_close(got, _eye_flat_reference(x, interior, around), atol=1e-5, rtol=1e-5)
+        other = x.clone()
+        other[:, 3:] = -other[:, 3:]
+        torch.testing.assert_close(_eye_flat(other, None), got)
+    flat = torch.zeros(1, 7, 16, 16)
+    flat[:, :3] = torch.tensor([0.2, -0.2, -0.6])[:, None, None]  # sRGB 0.6, 0.4, 0.2
+    stats = _eye_flat(flat, None)[0, :12]
+    want = torch.tensor([0, 0, 0, 0, 0, 0, 0.6, 0.4, 0.2, 0.36, 0.16, 0.04])
+    torch.testing.assert_close(stats, want, atol=1e-6, rtol=0)
+    y = (torch.rand(1, 7, 16, 16, generator=g, dtype=torch.float64) * 1.6 - 0.8).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: _eye_flat(t, None), (y,), eps=1e-6, atol=1e-5)
+
+
+def test_eye_flat_weight_pulls_the_openings_statistics(tmp_path):
+    """With the eye-flat term G's statistics end nearer, in their spreads, a target one spread above and one below
+    than without it; refusals as every per-region term's."""
+    from fitme_cli.reflectance.gan.train import _eye_flat
+
+    _check_spread_pull("eye_flat", _eye_flat, _two_regions(), tmp_path, 0.5)
+
+
 def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
     """The Nyquist measure is ``metrics.nyquist_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded
     specular and the normals' x and y (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2), then each one's
@@ -4053,7 +4121,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4123,6 +4191,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.range_map_weight == 0.0001 and lines[-1]["range_map_gap"] > 0 and "range_map_gap" not in lines[0]
     assert state.train.range_quantile_weight == 0.5 and lines[-1]["range_quantile_gap"] > 0
     assert "range_quantile_gap" not in lines[0]
+    assert state.train.eye_flat_weight == 0.5 and lines[-1]["eye_flat_gap"] > 0 and "eye_flat_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4294,7 +4363,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
                       "beard_band_rms_bearded", "nyquist_log_ratio", "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
-                      "sheet_flat_share_percent", "sheet_range_ratio"}
+                      "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -4424,6 +4493,14 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     # an untrained G draws the mean image: smoother than any data sample, flat on more of its sheet
     assert all(v[r]["gan"] > v[r]["data"] for v in flat.values() for r in ("skin", "scalp")), flat
     assert all(0 <= r < 1 for v in ratio.values() for r in v.values()), ratio
+    eyes = m["eye_opening_flatness"]  # per side: the openings' grain and spread in levels, the grain's link to the tone
+    assert list(eyes) == ["data", "gan"] and all(list(v) == ["grain_levels_q10_q50_q90", "spread_levels_q10_q50_q90",
+                                                             "grain_lightness_correlation"] for v in eyes.values())
+    assert all(0 <= q[0] <= q[1] <= q[2] <= 255 for v in eyes.values() for q in list(v.values())[:2]), eyes
+    assert all(-1 <= v["grain_lightness_correlation"] <= 1 for v in eyes.values())
+    # the data's openings vary from face to face, an untrained G's mean image hardly
+    assert eyes["data"]["grain_levels_q10_q50_q90"][2] - eyes["data"]["grain_levels_q10_q50_q90"][0] > \
+        eyes["gan"]["grain_levels_q10_q50_q90"][2] - eyes["gan"]["grain_levels_q10_q50_q90"][0], eyes
     lattice = m["texel_lattice"]  # per channel and part; the data's parities are near 1 (its maps are smooth at 64^2)
     assert list(lattice) == ["albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"]
     assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())

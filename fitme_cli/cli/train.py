@@ -53,7 +53,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "albedo_specular_link_weight", "hairline_edge_weight", "hairline_specks_weight",
                 "beard_band_weight", "relief_band_weight", "nyquist_weight",
                 "normal_symmetry_weight", "texel_neighbour_weight", "mouth_rows_weight", "screen_weight", "screen_levels",
-                "specular_quantile_weight", "range_map_weight", "range_quantile_weight",
+                "specular_quantile_weight", "range_map_weight", "range_quantile_weight", "eye_flat_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -247,6 +247,10 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="Pull each region's quantiles of that range (0.5 % to 99 %) to the data's, in units of the data's "
                    "spread: its share of flat texels and the spread of its grain (not in the paper; may change on "
                    "--resume). [0]")
+@click.option("--eye-flat-weight", type=click.FloatRange(min=0),
+              help="Pull each sample's eye openings' grain and colour on the sheet, each with the skin's tone around "
+                   "them, to the data's in units of its spread: the data's are flat on dark skin and grainier on fair "
+                   "(not in the paper; may change on --resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

@@ -27,8 +27,8 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       dark_speck_depth, nyquist_log_ratio)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_RELIEF_PARTS, TEXEL_MAPS, _mouth, _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour,
-                    copy_generator, load_checkpoint, sheet_ranges)
+from .train import (_RELIEF_PARTS, TEXEL_MAPS, _eye_flat, _mouth, _mouth_rows, _normal_symmetry, _relief_bands,
+                    _texel_neighbour, copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -131,12 +131,16 @@ class _Side:
     # in (``_stored``), then the mean range
     sheet_flat: torch.Tensor
     sheet_range: torch.Tensor
+    # (N, 12) per sample the eye-flat term's statistics (``train._eye_flat``) of the stored maps: the openings'
+    # interior grain (3 x 3 range), its product with the skin's lightness around them and its square, the same of
+    # their spread, their mean r, g, b and each times the skin's, in the sheet's sRGB (0-1)
+    eye_flat: torch.Tensor
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows", "mouth_rows",
                "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
-               "nyquist")
+               "nyquist", "eye_flat")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -147,6 +151,20 @@ def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
 def _mean_quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
     """(N,) per-sample values -> their mean over samples, then ``_quantiles``, each rounded to 3 places."""
     return [round(float(values.double().mean()), 3), *_quantiles(values, qs)]
+
+
+def _eye_flatness(stats: torch.Tensor) -> dict[str, list[float] | float]:
+    """(N, 12) ``_Side.eye_flat`` -> the grain's and the spread's quantiles (10, 50, 90 %) over samples in 255ths, and
+    the grain's correlation with the skin's lightness (0 when either does not vary). The lightness is read from the
+    colour products (each channel's over the openings' colour, which the eyeballs' grey keeps above 0), not from the
+    grain's: a flat opening's grain is 0."""
+    grain, spread = stats[:, 0].double(), stats[:, 3].double()
+    light = (stats[:, 9:12].double() / stats[:, 6:9].double().clamp_min(1e-12)).mean(1)
+    both = torch.stack([grain, light])
+    corr = torch.corrcoef(both)[0, 1] if bool((both.std(1) > 0).all()) else torch.tensor(0.0)
+    return {"grain_levels_q10_q50_q90": _quantiles(255 * grain, (0.1, 0.5, 0.9)),
+            "spread_levels_q10_q50_q90": _quantiles(255 * spread, (0.1, 0.5, 0.9)),
+            "grain_lightness_correlation": round(float(corr), 3)}
 
 
 def _slope_row(slope: torch.Tensor) -> dict[str, list[float]]:
@@ -287,6 +305,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             # the sheet's final rounding to 8 bits is not applied: half a level at most
             "sheet_flat": region_moments((ranges <= (_FLAT_LEVELS + 0.5) / 255).float(), regions)[:, :, 0],
             "sheet_range": region_moments(ranges, regions)[:, :, 0],
+            "eye_flat": _eye_flat(_stored(net, G.settings), regions)[:, :12],
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -512,6 +531,10 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                                               / max(float(real.sheet_range[j, c]), 1e-12), 3)
                                      for j, lab in enumerate(region_labels(regions))}
                               for c, name in enumerate(_SHEET_MAPS)},
+        # eye openings grainy on every face where the data's are flat on dark skin (the 340.00 kimg judge U): per sample,
+        # the openings' interior grain (mean 3 x 3 range) and spread (std), in sheet levels, their 10th, 50th and 90th
+        # percentiles over samples, and the grain's correlation over samples with the skin's lightness around them
+        "eye_opening_flatness": {side: _eye_flatness(m.eye_flat) for side, m in (("data", real), ("gan", gan))},
         # albedo grain that is not the specular's (the 308.28 kimg judge M's measure): per region, the correlation of the
         # albedo's finest band (mean of r, g, b) with the specular's (``metrics.region_band_correlation``), the mean
         # over samples and the 10th and 90th percentiles

@@ -26,8 +26,8 @@ from torch import nn
 
 from .ada import augment
 from ...shape.regions import REGIONS
-from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, eye_rings, hairline_reach,
-                   hairline_references, hairline_zones, eye_ring_halves, load_regions)
+from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, eye_openings, eye_rings,
+                   hairline_reach, hairline_references, hairline_zones, eye_ring_halves, load_regions)
 from .latents import sample_z
 from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussian_blur, log_chroma, region_band_correlation,
                       region_band_energy, region_coherence, region_edge_sharpness, region_labels, region_moments, region_relief,
@@ -55,7 +55,7 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "chroma_grain", "specular_link", "specular_spectrum", "texel_tail", "eye_ring",
                  "edge_sharpness", "specular_slope", "forehead_rows", "albedo_specular_link", "hairline_edge",
                  "hairline_specks", "beard_band", "relief_band", "nyquist", "normal_symmetry", "texel_neighbour",
-                 "mouth_rows", "screen", "specular_quantile", "range_map", "range_quantile")
+                 "mouth_rows", "screen", "specular_quantile", "range_map", "range_quantile", "eye_flat")
 
 
 @dataclass(frozen=True)
@@ -410,6 +410,14 @@ class TrainSettings:
     # are flat on the 8-bit sheet, its light ones are not. 0: off
     range_quantile_weight: float = 0.0
     range_quantile_beta: float = 0.99  # per-step decay of the running quantiles and their squares
+    # not in the paper: per sample, how flat the eye openings' interior is on the sheet and its colour, each with the
+    # skin's tone around them (``_eye_flat``), pulled as the specular-quantile term (``spread_loss``). The data's
+    # eyeballs are 0.4 of the skin plus a fixed grey, so their grain follows the skin's lightness: flat (the 3 x 3 range
+    # 1.4 levels at the 10th percentile of samples) on dark skin, 27 levels at the 90th on fair. At 340.00 kimg G_ema's
+    # was 7.6-14.8 from the 10th to the 90th: the means matched (the eye-ring term's), not their spread nor the link to the tone,
+    # the judge's "flat grey" tell (docs/brdf_gan.md). 0: off
+    eye_flat_weight: float = 0.0
+    eye_flat_beta: float = 0.99  # per-step decay of the running statistics and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -704,6 +712,10 @@ class TrainState:
     # (``_range_quantiles``), the range-quantile term's target, and G's running mean of them
     range_quantile_target: torch.Tensor | None = None
     running_range_quantile: torch.Tensor | None = None
+    # (2 * 12,) float32: the data's mean eye-opening statistics and their mean squares (``_eye_flat``), the eye-flat
+    # term's target, and G's running mean of them
+    eye_flat_target: torch.Tensor | None = None
+    running_eye_flat: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1275,6 +1287,36 @@ def _range_quantiles(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> 
     return _with_squares(region_quantiles(sheet_ranges(x, s), regions, _RANGE_QUANTILES).flatten(1))
 
 
+@functools.lru_cache(maxsize=4)
+def _eye_flat_masks(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """((R, R) bool, (R, R) bool): the eye openings' interior (``data.eye_openings`` whose 3 x 3 neighbourhood is all
+    opening: 44 texels at 256^2, none below, where it is the openings themselves) and the skin around them
+    (``data.eye_rings``' bands 3 and 4: 6-14 texels out at 256^2, 586 texels)."""
+    inside = eye_openings(resolution)
+    interior = -F.max_pool2d(-inside[None, None].float(), 3, 1, 1)[0, 0] > 0
+    bands = eye_rings(resolution)
+    return (interior if bool(interior.any()) else inside), (bands == 3) | (bands == 4)
+
+
+def _eye_flat(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * 12) float32 (float64 for float64 maps): per sample, in the sheet's sRGB
+    albedo (0-1), over the eye openings' interior (``_eye_flat_masks``): the mean 3 x 3 range (``metrics.local_range``, the largest over r, g, b) a, its
+    product with the mean lightness L of the skin around them and its square; the same of the std over the interior
+    (mean of r, g, b); the mean r, g, b and each times the skin's; then their squares (``spread_loss``). The products
+    carry how the openings follow the skin (through the data's E[a L] with the tone's own moments held by the tone
+    terms), the squares within the 12 their spread between samples. ``regions`` is not used."""
+    interior, around = (m.to(x.device) for m in _eye_flat_masks(x.shape[-1]))
+    # at least float32 (bf16 fakes are cast up), float64 kept for the gradcheck
+    albedo = ((x[:, :3].to(torch.promote_types(x.dtype, torch.float32)) + 1) / 2).clamp(0, 1)
+    grain = local_range(albedo).amax(1)[:, interior].mean(1)
+    inner = albedo[:, :, interior]
+    spread = inner.std(2, correction=0).mean(1)
+    colour, skin = inner.mean(2), albedo[:, :, around].mean(2)
+    light = skin.mean(1)
+    return _with_squares(torch.cat([torch.stack([grain, grain * light, grain.square(), spread, spread * light,
+                                                 spread.square()], 1), colour, colour * skin], 1))
+
+
 def _spread_z(running: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """running, target (2m,): m statistics' means, then their mean squares -> ((m,) gaps target - running of the
     means in units of the target's spread (from its squares), capped at ``_Z_CAP``; (m,) that spread, floored at
@@ -1294,7 +1336,7 @@ def spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor
 
 def _spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the gap of every ``spread_loss``
-    term (screen, specular quantiles, range quantiles)."""
+    term (screen, specular quantiles, range quantiles, eye flatness)."""
     return float(_spread_z(running, target)[0].abs().mean())
 
 
@@ -1685,7 +1727,7 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "screen": lambda x, regions: _screen_statistics(x, regions, gan, t.screen_levels),
             "specular_quantile": lambda x, regions: _specular_quantiles(x, regions, gan),
             "range_map": lambda x, regions: _range_map(x, regions, gan),
-            "range_quantile": lambda x, regions: _range_quantiles(x, regions, gan)}
+            "range_quantile": lambda x, regions: _range_quantiles(x, regions, gan), "eye_flat": _eye_flat}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -1696,8 +1738,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # tone_band and chroma_band and specular_band, grain, lattice, chroma_grain and beard_band as band; beard,
 # hairline_share, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope, forehead_rows,
 # albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and mouth_rows: mean
-# |running - target|; screen, specular_quantile and range_quantile: mean |gap| in the data's spreads (``_spread_gap``); texel_tail:
-# as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
+# |running - target|; screen, specular_quantile, range_quantile and eye_flat: mean |gap| in the data's spreads
+# (``_spread_gap``); texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
@@ -1716,7 +1758,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "nyquist": (coherence_loss, _abs_gap), "normal_symmetry": (coherence_loss, _abs_gap),
                   "texel_neighbour": (coherence_loss, _abs_gap), "mouth_rows": (coherence_loss, _abs_gap),
                   "screen": (spread_loss, _spread_gap), "specular_quantile": (spread_loss, _spread_gap),
-                  "range_map": (detail_map_loss, _detail_map_gap), "range_quantile": (spread_loss, _spread_gap)}
+                  "range_map": (detail_map_loss, _detail_map_gap), "range_quantile": (spread_loss, _spread_gap),
+                  "eye_flat": (spread_loss, _spread_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
