@@ -268,7 +268,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         grain_maps = torch.cat([x[:, :3].mean(1, keepdim=True), x[:, 3:6]], 1)
         log = x[:, :3].clamp_min(1e-3).log()
         near = [ring_profile(log, h) for h in halves if bool((h != 255).any())]  # above the openings, below
-        ranges = sheet_ranges(_stored(net, G.settings), G.settings)
+        stored = _stored(net, G.settings)  # rounded to the bits the data stores; the sheet and eye-flat rows read it
+        ranges = sheet_ranges(stored, G.settings)
         batch = {
             "spectra": region_spectrum(x[:, :3].mean(1), regions),
             "hairline": region_band_energy(x[:, :3], zones).mean(3),
@@ -305,7 +306,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             # the sheet's final rounding to 8 bits is not applied: half a level at most
             "sheet_flat": region_moments((ranges <= (_FLAT_LEVELS + 0.5) / 255).float(), regions)[:, :, 0],
             "sheet_range": region_moments(ranges, regions)[:, :, 0],
-            "eye_flat": _eye_flat(_stored(net, G.settings), regions)[:, :12],
+            "eye_flat": _eye_flat(stored, regions)[:, :12],
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
