@@ -1680,6 +1680,158 @@ def test_eye_flat_weight_pulls_the_openings_statistics(tmp_path):
     _check_spread_pull("eye_flat", _eye_flat, _two_regions(), tmp_path, 0.5)
 
 
+def test_brow_profile_index_follows_each_columns_brow():
+    """At 256^2 each column with 6 or more brow texels reads 17 rows, evenly from 5 above its brow to 5 below (so
+    bin 8 is its brow's middle row); at 16^2 the reach is 1 texel; below, where the layout has no brows, refused."""
+    from fitme_cli.reflectance.gan.data import load_regions
+    from fitme_cli.reflectance.gan.train import _brow_profile_index
+    from fitme_cli.shape.regions import REGIONS
+
+    for r, tall, reach in ((256, 6, 5), (16, 1, 1)):
+        brows = (load_regions(r) == REGIONS.index("brows")).numpy()
+        rows, cols = (i.numpy() for i in _brow_profile_index(r))
+        assert list(cols) == [c for c in range(r) if brows[:, c].sum() >= tall] and rows.shape == (len(cols), 17)
+        for row, c in zip(rows, cols):
+            inside = np.nonzero(brows[:, c])[0]
+            assert row[0] == inside.min() - reach and row[-1] == inside.max() + reach, (c, row)
+            assert (np.diff(row) >= 0).all() and brows[row[8], c], (c, row)
+    assert len(_brow_profile_index(256)[1]) == 56
+    with pytest.raises(ValueError, match="at least 16"):
+        _brow_profile_index(8)
+
+
+def _brow_profile_reference(x: torch.Tensor) -> torch.Tensor:
+    """The brow-profile statistics column by column and bin by bin, in float64."""
+    from fitme_cli.reflectance.gan.train import _brow_profile_index, texel_maps
+
+    maps = texel_maps(x.double(), TINY)[:, :4].numpy()
+    rows, cols = (i.numpy() for i in _brow_profile_index(x.shape[-1]))
+    out = []
+    for sample in maps:
+        profile = np.zeros((4, 17))
+        for c in range(4):
+            for b in range(17):
+                profile[c, b] = np.mean([sample[c, rows[k, b], cols[k]] for k in range(len(cols))])
+            profile[c] -= (profile[c, 0] + profile[c, 16]) / 2
+        stats = np.concatenate([profile.ravel(), np.abs(profile).ravel()])
+        out.append(np.concatenate([stats, stats ** 2]))
+    return torch.tensor(np.array(out), dtype=torch.float32)
+
+
+def test_brow_profile_measure_matches_a_loop_reference_known_values_and_gradients():
+    """The brow profile equals a column-by-column loop at 256^2 and 16^2; blind to the normals; on a flat map with
+    darker brows its log luminance reads 0 at the ends and log(brow / skin) at the brow's middle bin, its chromaticity
+    and specular 0; a float64 gradcheck through it."""
+    from fitme_cli.reflectance.gan.data import load_regions
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _brow_profile
+    from fitme_cli.shape.regions import REGIONS
+
+    g = torch.Generator().manual_seed(5)
+    for r in (256, 16):
+        x = torch.rand(2, 7, r, r, generator=g) * 2 - 1
+        got = _brow_profile(x, None, TINY)
+        assert got.shape == (2, 272) and got.dtype == torch.float32
+        torch.testing.assert_close(got, _brow_profile_reference(x), atol=1e-5, rtol=1e-5)
+        other = x.clone()
+        other[:, 4:] = -other[:, 4:]
+        torch.testing.assert_close(_brow_profile(other, None, TINY), got)
+    flat = torch.zeros(1, 7, 256, 256)
+    flat[:, :3] = 0.2
+    brows = load_regions(256) == REGIONS.index("brows")
+    flat[:, :3, brows] = -0.5
+    profile = _brow_profile(flat, None, TINY)[0, :68].view(4, 17)
+    skin, brow = (decode_albedo(torch.full((1, 3, 1, 1), v)).mean() for v in (0.2, -0.5))
+    torch.testing.assert_close(profile[0, [0, 16]], torch.zeros(2), atol=1e-6, rtol=0)
+    torch.testing.assert_close(profile[0, 8], (brow / skin).log(), atol=1e-5, rtol=0)
+    assert float(profile[0, 8]) < -0.5 and float(profile[1:].abs().max()) < 1e-5
+    y = (torch.rand(1, 7, 16, 16, generator=g, dtype=torch.float64) * 1.6 - 0.8).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: _brow_profile(t, None, TINY), (y,), eps=1e-6, atol=1e-5)
+
+
+def test_brow_profile_weight_pulls_the_profile(tmp_path):
+    """With the brow-profile term G's statistics end nearer, in their spreads, a target one spread above and one below
+    than without it; refusals as every per-region term's."""
+    from fitme_cli.reflectance.gan.train import _brow_profile
+
+    _check_spread_pull("brow_profile", lambda x, regions: _brow_profile(x, regions, TINY), _two_regions(), tmp_path,
+                       0.5)
+
+
+def test_lip_rings_band_the_skin_around_the_lips_by_distance_on_each_side():
+    """Each half holds the lips (0) and the layout's skin in bands of distance from them, above the lips' mean row
+    and at or below it; the bands' texels lie within their edges (2, 4, 6, 9, 14, 20, 26 texels at 256^2), none past
+    26 texels nor outside the skin; consecutive labels; at 16^2 both halves hold bands, at 8^2 (no lips) none."""
+    import cv2
+
+    from fitme_cli.reflectance.gan.data import lip_rings, load_regions
+    from fitme_cli.shape.regions import REGIONS
+
+    regions = load_regions(256).numpy()
+    lips = regions == REGIONS.index("lips")
+    dist = cv2.distanceTransform((~lips).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    rows = np.arange(256)[:, None].repeat(256, 1)
+    rings = lip_rings(256).numpy()
+    edges = [0, 2, 4, 6, 9, 14, 20, 26]
+    for h, side in enumerate((rows < rows[lips].mean(), rows >= rows[lips].mean())):
+        assert ((rings[h] == 0) == (lips & side)).all()
+        assert sorted(set(np.unique(rings[h])) - {255}) == list(range(8))
+        for b in range(1, 8):
+            d = dist[rings[h] == b]
+            assert d.min() > edges[b - 1] and d.max() <= edges[b], (h, b)
+        labelled = rings[h] != 255
+        assert not (labelled & ~side).any() and (regions[labelled & ~lips] == REGIONS.index("skin")).all()
+        assert ((rings[h] == 255) & side & (regions == REGIONS.index("skin")) & (dist <= 26)).sum() == 0
+    assert all(bool((h != 255).any()) for h in lip_rings(16)) and bool((lip_rings(8) == 255).all())
+
+
+def test_lip_ring_measure_is_the_ring_profile_of_each_half_known_values_and_gradients():
+    """The lip-ring measure is ``metrics.ring_profile`` of ``texel_maps``' first four over each half of
+    ``data.lip_rings``, then its absolute value, then the squares, computed here band by band; blind to the normals; a
+    map lighter in a band above the lips reads log(light / skin) there and 0 elsewhere; a float64 gradcheck; refused
+    below 16^2."""
+    from fitme_cli.reflectance.gan.data import lip_rings
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _lip_ring, texel_maps
+
+    g = torch.Generator().manual_seed(6)
+    for r in (256, 16):
+        x = torch.rand(2, 7, r, r, generator=g) * 2 - 1
+        got = _lip_ring(x, None, TINY)
+        maps = texel_maps(x.double(), TINY)[:, :4]
+        want = []
+        for half in lip_rings(r):
+            k = int(half[half != 255].max())
+            outer = maps[:, :, half == k].mean(2)
+            want += [maps[:, :, half == b].mean(2) - outer for b in range(k)]
+        want = torch.stack(want, 1).flatten(1)  # (2, K * 4): band by band, then map
+        want = torch.cat([want, want.abs()], 1)
+        torch.testing.assert_close(got, torch.cat([want, want.square()], 1).float(), atol=1e-5, rtol=1e-5)
+        other = x.clone()
+        other[:, 4:] = -other[:, 4:]
+        torch.testing.assert_close(_lip_ring(other, None, TINY), got)
+    assert _lip_ring(torch.zeros(1, 7, 256, 256), None, TINY).shape == (1, 224)
+    light = torch.zeros(1, 7, 256, 256)
+    light[:, :3, lip_rings(256)[0] == 2] = 0.3  # the 2-4 texel band above the upper lip
+    profile = _lip_ring(light, None, TINY)[0, :56].view(2, 7, 4)
+    skin, patch = (decode_albedo(torch.full((1, 3, 1, 1), v)).mean() for v in (0.0, 0.3))
+    torch.testing.assert_close(profile[0, 2, 0], (patch / skin).log(), atol=1e-5, rtol=0)
+    profile[0, 2, 0] = 0
+    assert float(profile.abs().max()) < 1e-5
+    y = (torch.rand(1, 7, 16, 16, generator=g, dtype=torch.float64) * 1.6 - 0.8).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: _lip_ring(t, None, TINY), (y,), eps=1e-6, atol=1e-5)
+    with pytest.raises(ValueError, match="at least 16"):
+        _lip_ring(torch.zeros(1, 7, 8, 8), None, TINY)
+
+
+def test_lip_ring_weight_pulls_the_rings(tmp_path):
+    """With the lip-ring term G's statistics end nearer, in their spreads, a target one spread above and one below
+    than without it; refusals as every per-region term's."""
+    from fitme_cli.reflectance.gan.train import _lip_ring
+
+    _check_spread_pull("lip_ring", lambda x, regions: _lip_ring(x, regions, TINY), _two_regions(), tmp_path, 0.5)
+
+
 def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
     """The Nyquist measure is ``metrics.nyquist_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded
     specular and the normals' x and y (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2), then each one's
@@ -4121,7 +4273,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4192,6 +4344,9 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.range_quantile_weight == 0.5 and lines[-1]["range_quantile_gap"] > 0
     assert "range_quantile_gap" not in lines[0]
     assert state.train.eye_flat_weight == 0.5 and lines[-1]["eye_flat_gap"] > 0 and "eye_flat_gap" not in lines[0]
+    assert state.train.brow_profile_weight == 0.5 and lines[-1]["brow_profile_gap"] > 0
+    assert "brow_profile_gap" not in lines[0]
+    assert state.train.lip_ring_weight == 0.5 and lines[-1]["lip_ring_gap"] > 0 and "lip_ring_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4363,7 +4518,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
                       "beard_band_rms_bearded", "nyquist_log_ratio", "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
-                      "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness"}
+                      "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
+                      "brow_profile", "lip_ring_log_luminance"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -4501,6 +4657,17 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     # the data's openings vary from face to face, an untrained G's mean image hardly
     assert eyes["data"]["grain_levels_q10_q50_q90"][2] - eyes["data"]["grain_levels_q10_q50_q90"][0] > \
         eyes["gan"]["grain_levels_q10_q50_q90"][2] - eyes["gan"]["grain_levels_q10_q50_q90"][0], eyes
+    brow = m["brow_profile"]  # per side and map: the mean |profile| per bin, the brow body's spread over samples
+    assert list(brow) == ["data", "gan"] and all(list(v) == ["log_luminance", "red_green", "yellow_blue", "specular"]
+                                                 for v in brow.values())
+    assert all(len(p["mean_abs_by_bin"]) == 17 and 0 <= p["middle_abs_q10_q50_q90"][0] <= p["middle_abs_q10_q50_q90"][2]
+               for v in brow.values() for p in v.values()), brow
+    # the data's brows stand out from the skin around them, an untrained G's mean image's hardly
+    assert brow["data"]["log_luminance"]["mean_abs_by_bin"][8] > brow["gan"]["log_luminance"]["mean_abs_by_bin"][8], brow
+    lip = m["lip_ring_log_luminance"]  # per side and half: the lips' and each band's mean against the outermost
+    assert list(lip) == ["data", "gan"] and all(list(v) == ["above", "below"] for v in lip.values())
+    assert all(len(h["mean"]) == len(h["mean_abs"]) >= 2 and all(a >= abs(b) for a, b in zip(h["mean_abs"], h["mean"]))
+               for v in lip.values() for h in v.values()), lip
     lattice = m["texel_lattice"]  # per channel and part; the data's parities are near 1 (its maps are smooth at 64^2)
     assert list(lattice) == ["albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"]
     assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())

@@ -54,6 +54,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "beard_band_weight", "relief_band_weight", "nyquist_weight",
                 "normal_symmetry_weight", "texel_neighbour_weight", "mouth_rows_weight", "screen_weight", "screen_levels",
                 "specular_quantile_weight", "range_map_weight", "range_quantile_weight", "eye_flat_weight",
+                "brow_profile_weight", "lip_ring_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -251,6 +252,15 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
               help="Pull each sample's eye openings' grain and colour on the sheet, each with the skin's tone around "
                    "them, to the data's in units of its spread: the data's are flat on dark skin and grainier on fair "
                    "(not in the paper; may change on --resume). [0]")
+@click.option("--brow-profile-weight", type=click.FloatRange(min=0),
+              help="Pull each sample's profile across the brows (lightness, colour and specular, top to bottom along "
+                   "their arch) to the data's in units of its spread: the data's brows are as dark or light in the "
+                   "middle as at their edges, without a stripe or a halo (not in the paper; may change on --resume). [0]")
+@click.option("--lip-ring-weight", type=click.FloatRange(min=0),
+              help="Pull each sample's lips and the skin around them, in bands of distance above and below, against "
+                   "the skin further out, to the data's in units of its spread: the data's skin is as light next to "
+                   "the lips as beyond, without a halo or a light patch above the upper lip (not in the paper; may "
+                   "change on --resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

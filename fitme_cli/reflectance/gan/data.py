@@ -20,7 +20,7 @@ from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
 __all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "hairline_reach",
-           "hairline_references", "split_sides", "eye_openings", "eye_rings", "brow_edges", "beard_zone", "HAIRLINE_LABEL",
+           "hairline_references", "split_sides", "eye_openings", "eye_rings", "lip_rings", "brow_edges", "beard_zone", "HAIRLINE_LABEL",
            "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
@@ -220,19 +220,55 @@ def eye_rings(resolution: int) -> torch.Tensor:
     from ...shape.regions import REGIONS
 
     inside = eye_openings(resolution).numpy()
-    dist = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     regions = load_regions(resolution).numpy()
     around = np.isin(regions, [REGIONS.index("skin"), REGIONS.index("eyes")]) & ~inside
+    return torch.from_numpy(_distance_bands(inside, around, _EYE_RING_EDGES))
+
+
+def _distance_bands(inside: np.ndarray, around: np.ndarray, edges: tuple[float, ...]) -> np.ndarray:
+    """(R, R) bool ``inside`` and ``around`` -> (R, R) uint8: ``inside`` labelled 0, the texels of ``around`` in bands
+    of distance from it labelled 1, 2, ... (outer edges ``edges`` in texels at 256^2, scaled to R and each at least
+    one texel wider than the one before; a band that holds no texel is dropped, the labels stay consecutive), 255
+    elsewhere."""
+    resolution = inside.shape[0]
+    dist = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     out = np.full(inside.shape, 255, np.uint8)
     out[inside] = 0
     lo, band = 0.0, 1
-    for edge in _EYE_RING_EDGES:
+    for edge in edges:
         hi = max(edge * resolution / 256, lo + 1)
         sel = around & (dist > lo) & (dist <= hi)
         if sel.any():
             out[sel] = band
             band += 1
         lo = hi
+    return out
+
+
+def lip_rings(resolution: int) -> torch.Tensor:
+    """(2, R, R) uint8: the layout's lips and the skin around them in bands of distance (``_distance_bands``, outer
+    edges 2, 4, 6, 9, 14, 20 and 26 texels at 256^2: the eye rings' without the rest of the face), above the lips'
+    mean row (0) and at or below it (1); in each half the lips are 0 and the bands 1, 2, ... in order (one empty in
+    that half dropped), 255 elsewhere, and all 255 in a half with fewer than two labels. Only the shape model's skin
+    region joins a band (not the nose, nor the neck). ``metrics.ring_profile`` over each half is the lips and each band
+    against the 20-26 texel band on that side: the data's skin is as light next to the lips as 20 texels out (log
+    luminance 2-9 texels above the upper lip +0.015, below the lower lip 0.00), where G_ema at 343.17 kimg drew a
+    lighter patch above the upper lip (+0.09) and a halo below (+0.05) (docs/brdf_gan.md)."""
+    from ...shape.regions import REGIONS
+
+    regions = load_regions(resolution).numpy()
+    lips = regions == REGIONS.index("lips")
+    bands = _distance_bands(lips, (regions == REGIONS.index("skin")) & ~lips, _EYE_RING_EDGES[:-1])
+    out = np.full((2, resolution, resolution), 255, np.uint8)
+    if not lips.any():  # below 16^2
+        return torch.from_numpy(out)
+    rows = np.arange(resolution)[:, None].repeat(resolution, 1)
+    centre = rows[lips].mean()
+    for h, side in enumerate((rows < centre, rows >= centre)):
+        present = [b for b in np.unique(bands[side]) if b != 255]
+        if len(present) >= 2:
+            for label, b in enumerate(present):
+                out[h][side & (bands == b)] = label
     return torch.from_numpy(out)
 
 

@@ -27,8 +27,8 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       dark_speck_depth, nyquist_log_ratio)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_RELIEF_PARTS, TEXEL_MAPS, _eye_flat, _mouth, _mouth_rows, _normal_symmetry, _relief_bands,
-                    _texel_neighbour, copy_generator, load_checkpoint, sheet_ranges)
+from .train import (_RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _eye_flat, _lip_ring, _lip_ring_halves, _mouth, _mouth_rows,
+                    _normal_symmetry, _relief_bands, _texel_neighbour, copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -135,12 +135,19 @@ class _Side:
     # interior grain (3 x 3 range), its product with the skin's lightness around them and its square, the same of
     # their spread, their mean r, g, b and each times the skin's, in the sheet's sRGB (0-1)
     eye_flat: torch.Tensor
+    # (N, 4, 17) per sample the brow-profile term's signed profile (``train._brow_profile``): log luminance, the two log
+    # chromaticity axes and the linear specular, top to bottom across the brows, the skin above and below at 0
+    brow_profile: torch.Tensor
+    # (N, K, 4) per sample the lip-ring term's signed profile (``train._lip_ring``): the lips and the bands of skin
+    # around them, above the lips and then below (K 14 at 256^2), each against the outermost band on its side; log
+    # luminance, the two log chromaticity axes and the linear specular
+    lip_ring: torch.Tensor
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows", "mouth_rows",
                "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
-               "nyquist", "eye_flat")
+               "nyquist", "eye_flat", "brow_profile", "lip_ring")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -165,6 +172,28 @@ def _eye_flatness(stats: torch.Tensor) -> dict[str, list[float] | float]:
     return {"grain_levels_q10_q50_q90": _quantiles(255 * grain, (0.1, 0.5, 0.9)),
             "spread_levels_q10_q50_q90": _quantiles(255 * spread, (0.1, 0.5, 0.9)),
             "grain_lightness_correlation": round(float(corr), 3)}
+
+
+def _brow_row(profile: torch.Tensor) -> dict[str, dict[str, list[float]]]:
+    """(N, 4, 17) ``_Side.brow_profile`` -> per map: the mean |profile| over samples in each of the 17 bins, and the
+    quantiles 10 / 50 / 90 % over samples of the mean |profile| over the middle five (the brow's body)."""
+    mag = profile.double().abs()
+    return {name: {"mean_abs_by_bin": [round(float(v), 3) for v in mag[:, c].mean(0)],
+                   "middle_abs_q10_q50_q90": _quantiles(mag[:, c, 6:11].mean(1), (0.1, 0.5, 0.9))}
+            for c, name in enumerate(("log_luminance", "red_green", "yellow_blue", "specular"))}
+
+
+def _lip_row(profile: torch.Tensor, resolution: int) -> dict[str, dict[str, list[float]]]:
+    """(N, K, 4) ``_Side.lip_ring`` -> per half (above the lips, below) the log luminance's mean over samples in the
+    lips and each band (inner to outer, against the outermost), and its mean |value|."""
+    counts = [int(h[h != 255].max()) for h in _lip_ring_halves(resolution)]
+    out, start = {}, 0
+    for name, k in zip(("above", "below"), counts):
+        part = profile[:, start:start + k, 0].double()
+        out[name] = {"mean": [round(float(v), 3) for v in part.mean(0)],
+                     "mean_abs": [round(float(v), 3) for v in part.abs().mean(0)]}
+        start += k
+    return out
 
 
 def _slope_row(slope: torch.Tensor) -> dict[str, list[float]]:
@@ -245,6 +274,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
 
     forehead = edges == REGIONS.index("forehead")  # the hairline band carved out, as the forehead-rows term's
     mouth_k = sum(int(m.any(1).sum()) for m in _mouth(regions.shape[0]))  # the lips' and the ring's rows
+    lip_k = sum(int(h[h != 255].max()) for h in _lip_ring_halves(regions.shape[0]))  # the lip ring's bands, both sides
     halves = eye_ring_halves(regions.shape[0])
     hairline = (hairline_reach(regions.shape[0]), *hairline_references(regions.shape[0]))
     beard_labels = torch.where(beard, 0, 255).to(torch.uint8)
@@ -307,6 +337,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "sheet_flat": region_moments((ranges <= (_FLAT_LEVELS + 0.5) / 255).float(), regions)[:, :, 0],
             "sheet_range": region_moments(ranges, regions)[:, :, 0],
             "eye_flat": _eye_flat(stored, regions)[:, :12],
+            "brow_profile": _brow_profile(net, regions, G.settings)[:, :68].view(len(x), 4, 17),
+            "lip_ring": _lip_ring(net, regions, G.settings)[:, :lip_k * 4].view(len(x), lip_k, 4),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -536,6 +568,15 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # the openings' interior grain (mean 3 x 3 range) and spread (std), in sheet levels, their 10th, 50th and 90th
         # percentiles over samples, and the grain's correlation over samples with the skin's lightness around them
         "eye_opening_flatness": {side: _eye_flatness(m.eye_flat) for side, m in (("data", real), ("gan", gan))},
+        # brows drawn as an outline, a lighter stripe along them and a glow (the 343.17 kimg judge X): the profile across
+        # the brows along their arch (``train._brow_profile``), per map, its mean |value| per bin from 5 texels above to 5
+        # below, and the spread over samples of the brow body's
+        "brow_profile": {side: _brow_row(m.brow_profile) for side, m in (("data", real), ("gan", gan))},
+        # a light patch above the upper lip and a halo below (the 343.17 kimg judge X): the log luminance of the lips and
+        # of the skin around them in bands of distance (``data.lip_rings``: 0-2, 2-4, 4-6, 6-9, 9-14 and 14-20 texels at
+        # 256^2), each against the 20-26 texel band on its side, above the lips and below: the mean and the mean |value|
+        "lip_ring_log_luminance": {side: _lip_row(m.lip_ring, regions.shape[0])
+                                   for side, m in (("data", real), ("gan", gan))},
         # albedo grain that is not the specular's (the 308.28 kimg judge M's measure): per region, the correlation of the
         # albedo's finest band (mean of r, g, b) with the specular's (``metrics.region_band_correlation``), the mean
         # over samples and the 10th and 90th percentiles

@@ -27,7 +27,7 @@ from torch import nn
 from .ada import augment
 from ...shape.regions import REGIONS
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, eye_openings, eye_rings,
-                   hairline_reach, hairline_references, hairline_zones, eye_ring_halves, load_regions)
+                   hairline_reach, hairline_references, hairline_zones, eye_ring_halves, lip_rings, load_regions)
 from .latents import sample_z
 from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussian_blur, log_chroma, region_band_correlation,
                       region_band_energy, region_coherence, region_edge_sharpness, region_labels, region_moments, region_relief,
@@ -55,7 +55,8 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "chroma_grain", "specular_link", "specular_spectrum", "texel_tail", "eye_ring",
                  "edge_sharpness", "specular_slope", "forehead_rows", "albedo_specular_link", "hairline_edge",
                  "hairline_specks", "beard_band", "relief_band", "nyquist", "normal_symmetry", "texel_neighbour",
-                 "mouth_rows", "screen", "specular_quantile", "range_map", "range_quantile", "eye_flat")
+                 "mouth_rows", "screen", "specular_quantile", "range_map", "range_quantile", "eye_flat",
+                 "brow_profile", "lip_ring")
 
 
 @dataclass(frozen=True)
@@ -418,6 +419,21 @@ class TrainSettings:
     # the judge's "flat grey" tell (docs/brdf_gan.md). 0: off
     eye_flat_weight: float = 0.0
     eye_flat_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: per sample, the brows' profile across them, top to bottom, following their arch
+    # (``_brow_profile``): log luminance, log chromaticity and specular, pulled as the specular-quantile term
+    # (``spread_loss``). At 343.17 kimg G_ema drew brows as an outline: 0.75 of the data's contrast to the skin (mean |log
+    # luminance| at the middle 0.42 against 0.56), a lighter stripe 2/3 of the way down and a glow above light brows, the
+    # judges' "horizontal bands with a light stripe and a halo below" (docs/brdf_gan.md). 0: off
+    brow_profile_weight: float = 0.0
+    brow_profile_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: per sample, the lips and the skin around them in bands of distance, above the lips and below,
+    # each against the band 20-26 texels out on its side (``_lip_ring``): log luminance, log chromaticity and specular,
+    # pulled as the specular-quantile term (``spread_loss``). The mouth-rows term sees the rows within 6 texels against
+    # their own mean, not a ring lighter than the skin beyond it: at 343.17 kimg G_ema's skin 2-9 texels above the upper
+    # lip was +0.09 in log luminance (the data's +0.015) and below the lower lip +0.05 (0.00), the judges' "light
+    # moustache patch" and "soft halos around the lips" (docs/brdf_gan.md). 0: off
+    lip_ring_weight: float = 0.0
+    lip_ring_beta: float = 0.99  # per-step decay of the running statistics and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -716,6 +732,14 @@ class TrainState:
     # term's target, and G's running mean of them
     eye_flat_target: torch.Tensor | None = None
     running_eye_flat: torch.Tensor | None = None
+    # (2 * 2 * 4 * 17,) float32: the data's mean brow profiles, their absolute values and the squares of both
+    # (``_brow_profile``), the brow-profile term's target, and G's running mean of them
+    brow_profile_target: torch.Tensor | None = None
+    running_brow_profile: torch.Tensor | None = None
+    # (2 * 2 * 4 * K,) float32 (K 14 at 256^2, ``_lip_ring``): the data's mean lip-ring profiles, their absolute values and the
+    # squares of both (``_lip_ring``), the lip-ring term's target, and G's running mean of them
+    lip_ring_target: torch.Tensor | None = None
+    running_lip_ring: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1317,6 +1341,64 @@ def _eye_flat(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
                                                  spread.square()], 1), colour, colour * skin], 1))
 
 
+_BROW_BINS = 17  # the brow profile's samples across each column, 5 texels (at 256^2) above the brow to 5 below
+
+
+@functools.lru_cache(maxsize=4)
+def _brow_profile_index(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """((K, 17) int64 rows, (K,) int64 columns): the texels the brow profile reads. For each of the K columns holding
+    at least 6 brow texels at 256^2 (scaled with R, at least 1; the brows' tips left out: their few rows hold no
+    profile), ``_BROW_BINS`` rows evenly from 5 texels (scaled, at least 1) above the layout's brow in that column to 5 below,
+    rounded half to even and clamped to the map: the bins follow the arch, so a stripe along the brow stays in one."""
+    brows = (load_regions(resolution) == REGIONS.index("brows")).numpy()
+    tall, reach = max(1, round(6 * resolution / 256)), max(1.0, 5 * resolution / 256)
+    if not brows.any():
+        raise ValueError(f"the brow profile needs maps of at least 16^2, where the layout has brows; got {resolution}^2")
+    rows, cols = [], []
+    for c in np.nonzero(brows.sum(0) >= tall)[0]:
+        r = np.nonzero(brows[:, c])[0]
+        top, bottom = r.min() - reach, r.max() + reach
+        rows.append(np.clip(np.round(top + (bottom - top) * np.arange(_BROW_BINS) / (_BROW_BINS - 1)), 0, resolution - 1))
+        cols.append(c)
+    return torch.tensor(np.array(rows), dtype=torch.int64), torch.tensor(cols, dtype=torch.int64)
+
+
+def _brow_profile(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * 2 * 4 * 17) float32 (float64 for float64 maps): per sample and map of
+    ``texel_maps``' first four (log luminance, the two log-chromaticity axes, the linear specular), the profile across
+    the brows (``_brow_profile_index``: each bin's mean over the columns, minus the mean of the two end bins, the skin
+    above and below), then its absolute value (a dark brow and a light one have one shape of either sign), then the
+    squares of both (``spread_loss``). ``regions`` is not used: the brows are the layout's. ``s``: the specular's
+    decoding."""
+    rows, cols = (i.to(x.device) for i in _brow_profile_index(x.shape[-1]))
+    maps = texel_maps(x.to(torch.promote_types(x.dtype, torch.float32)), s)[:, :4]
+    profile = maps[:, :, rows, cols[:, None]].mean(2)  # (B, 4, 17)
+    profile = (profile - profile[..., [0, -1]].mean(-1, keepdim=True)).flatten(1)
+    return _with_squares(torch.cat([profile, profile.abs()], 1))
+
+
+@functools.lru_cache(maxsize=4)
+def _lip_ring_halves(resolution: int) -> tuple[torch.Tensor, ...]:
+    """``data.lip_rings``' halves that hold bands (both from 16^2 up), computed once per resolution."""
+    return tuple(h for h in lip_rings(resolution) if bool((h != 255).any()))
+
+
+def _lip_ring(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * 2 * 4 * K) float32 (float64 for float64 maps), K the labels of both halves
+    of ``data.lip_rings`` but their outermost (14 at 256^2: the lips and six bands on each side): per sample,
+    ``metrics.ring_profile`` of ``texel_maps``' first four (log luminance, the two log-chromaticity axes, the linear
+    specular) over the lips and the bands of skin around them, above the lips and then below, each against the 20-26
+    texel band on its side; then its absolute value (a beard's ring and a bare chin's halo have one shape of either
+    sign); then the squares of both (``spread_loss``).
+    ``regions`` is not used: the bands are the layout's."""
+    halves = [h.to(x.device) for h in _lip_ring_halves(x.shape[-1])]
+    if not halves:
+        raise ValueError(f"the lip ring needs maps of at least 16^2, where the layout has lips; got {x.shape[-1]}^2")
+    maps = texel_maps(x.to(torch.promote_types(x.dtype, torch.float32)), s)[:, :4]
+    profile = torch.cat([ring_profile(maps, h).flatten(1) for h in halves], 1)
+    return _with_squares(torch.cat([profile, profile.abs()], 1))
+
+
 def _spread_z(running: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """running, target (2m,): m statistics' means, then their mean squares -> ((m,) gaps target - running of the
     means in units of the target's spread (from its squares), capped at ``_Z_CAP``; (m,) that spread, floored at
@@ -1336,7 +1418,7 @@ def spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor
 
 def _spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the gap of every ``spread_loss``
-    term (screen, specular quantiles, range quantiles, eye flatness)."""
+    term (screen, specular quantiles, range quantiles, eye flatness, brow profile, lip ring)."""
     return float(_spread_z(running, target)[0].abs().mean())
 
 
@@ -1727,7 +1809,9 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "screen": lambda x, regions: _screen_statistics(x, regions, gan, t.screen_levels),
             "specular_quantile": lambda x, regions: _specular_quantiles(x, regions, gan),
             "range_map": lambda x, regions: _range_map(x, regions, gan),
-            "range_quantile": lambda x, regions: _range_quantiles(x, regions, gan), "eye_flat": _eye_flat}
+            "range_quantile": lambda x, regions: _range_quantiles(x, regions, gan), "eye_flat": _eye_flat,
+            "brow_profile": lambda x, regions: _brow_profile(x, regions, gan),
+            "lip_ring": lambda x, regions: _lip_ring(x, regions, gan)}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -1738,7 +1822,7 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # tone_band and chroma_band and specular_band, grain, lattice, chroma_grain and beard_band as band; beard,
 # hairline_share, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope, forehead_rows,
 # albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and mouth_rows: mean
-# |running - target|; screen, specular_quantile, range_quantile and eye_flat: mean |gap| in the data's spreads
+# |running - target|; screen, specular_quantile, range_quantile, eye_flat, brow_profile and lip_ring: mean |gap| in the data's spreads
 # (``_spread_gap``); texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
@@ -1759,7 +1843,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "texel_neighbour": (coherence_loss, _abs_gap), "mouth_rows": (coherence_loss, _abs_gap),
                   "screen": (spread_loss, _spread_gap), "specular_quantile": (spread_loss, _spread_gap),
                   "range_map": (detail_map_loss, _detail_map_gap), "range_quantile": (spread_loss, _spread_gap),
-                  "eye_flat": (spread_loss, _spread_gap)}
+                  "eye_flat": (spread_loss, _spread_gap), "brow_profile": (spread_loss, _spread_gap),
+                  "lip_ring": (spread_loss, _spread_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
