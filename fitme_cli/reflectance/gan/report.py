@@ -27,8 +27,9 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       dark_speck_depth, nyquist_log_ratio)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _eye_flat, _lip_ring, _lip_ring_halves, _mouth, _mouth_rows,
-                    _normal_symmetry, _relief_bands, _texel_neighbour, copy_generator, load_checkpoint, sheet_ranges)
+from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _eye_flat, _lip_ring, _lip_ring_counts, _mouth,
+                    _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour, copy_generator, load_checkpoint,
+                    sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -186,9 +187,8 @@ def _brow_row(profile: torch.Tensor) -> dict[str, dict[str, list[float]]]:
 def _lip_row(profile: torch.Tensor, resolution: int) -> dict[str, dict[str, list[float]]]:
     """(N, K, 4) ``_Side.lip_ring`` -> per half (above the lips, below) the log luminance's mean over samples in the
     lips and each band (inner to outer, against the outermost), and its mean |value|."""
-    counts = [int(h[h != 255].max()) for h in _lip_ring_halves(resolution)]
     out, start = {}, 0
-    for name, k in zip(("above", "below"), counts):
+    for name, k in zip(("above", "below"), _lip_ring_counts(resolution)):
         part = profile[:, start:start + k, 0].double()
         out[name] = {"mean": [round(float(v), 3) for v in part.mean(0)],
                      "mean_abs": [round(float(v), 3) for v in part.abs().mean(0)]}
@@ -274,7 +274,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
 
     forehead = edges == REGIONS.index("forehead")  # the hairline band carved out, as the forehead-rows term's
     mouth_k = sum(int(m.any(1).sum()) for m in _mouth(regions.shape[0]))  # the lips' and the ring's rows
-    lip_k = sum(int(h[h != 255].max()) for h in _lip_ring_halves(regions.shape[0]))  # the lip ring's bands, both sides
+    lip_k = sum(_lip_ring_counts(regions.shape[0]))  # the lip ring's rows, both sides
     halves = eye_ring_halves(regions.shape[0])
     hairline = (hairline_reach(regions.shape[0]), *hairline_references(regions.shape[0]))
     beard_labels = torch.where(beard, 0, 255).to(torch.uint8)
@@ -337,7 +337,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "sheet_flat": region_moments((ranges <= (_FLAT_LEVELS + 0.5) / 255).float(), regions)[:, :, 0],
             "sheet_range": region_moments(ranges, regions)[:, :, 0],
             "eye_flat": _eye_flat(stored, regions)[:, :12],
-            "brow_profile": _brow_profile(net, regions, G.settings)[:, :68].view(len(x), 4, 17),
+            "brow_profile": _brow_profile(net, regions, G.settings)[:, :4 * _BROW_BINS].view(len(x), 4, _BROW_BINS),
             "lip_ring": _lip_ring(net, regions, G.settings)[:, :lip_k * 4].view(len(x), lip_k, 4),
         }
         for k, v in batch.items():

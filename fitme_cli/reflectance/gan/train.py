@@ -1383,6 +1383,12 @@ def _lip_ring_halves(resolution: int) -> tuple[torch.Tensor, ...]:
     return tuple(h for h in lip_rings(resolution) if bool((h != 255).any()))
 
 
+def _lip_ring_counts(resolution: int) -> tuple[int, ...]:
+    """Per half of ``_lip_ring_halves``, how many rows ``_lip_ring``'s profile has for it: the lips and every band but
+    the outermost, the reference (7 each at 256^2)."""
+    return tuple(int(h[h != 255].max()) for h in _lip_ring_halves(resolution))
+
+
 def _lip_ring(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2 * 2 * 4 * K) float32 (float64 for float64 maps), K the labels of both halves
     of ``data.lip_rings`` but their outermost (14 at 256^2: the lips and six bands on each side): per sample,
