@@ -166,6 +166,15 @@ def test_onnx_matches_cv2dnn_on_real_faces(session, astronaut, astro_crop):
         assert float(got @ ref) > 1 - 1e-6
 
 
+def test_read_net_without_tensorflow_importer_says_which_opencv(monkeypatch, tmp_path):
+    """OpenCV 5.1 removed readNetFromTensorflow: the build must name the version range it needs."""
+    from fitme_cli.errors import ModelBuildError
+
+    monkeypatch.delattr(cv2.dnn, "readNetFromTensorflow")
+    with pytest.raises(ModelBuildError, match=r"cannot read TensorFlow graphs.*>=5.0,<5.1"):
+        fn.read_net(tmp_path / "graph_final.pb")
+
+
 def test_prewhiten_matches_facenet(astro_crop):
     got = fn.prewhiten(_tensor(astro_crop).double()).numpy()
     assert np.abs(got - _numpy_prewhiten(astro_crop)).max() < 1e-5

@@ -106,10 +106,13 @@ def read_net(path: Path):
     """The graph in cv2.dnn's classic engine: it can return intermediate layers (the new one cannot)."""
     import cv2
 
+    if not hasattr(cv2.dnn, "readNetFromTensorflow"):  # OpenCV 5.1 removed the TensorFlow importer
+        raise ModelBuildError(f"OpenCV {cv2.__version__} cannot read TensorFlow graphs; FaceNet's build "
+                              "needs opencv-contrib-python-headless>=5.0,<5.1 (as pyproject.toml pins)", path)
     try:
         return cv2.dnn.readNetFromTensorflow(str(path), "", cv2.dnn.ENGINE_CLASSIC)
     except cv2.error as e:
-        raise ModelBuildError(f"cv2.dnn cannot read the FaceNet graph (needs OpenCV >= 5): {e}", path) from e
+        raise ModelBuildError(f"cv2.dnn cannot read the FaceNet graph (needs OpenCV 5.0): {e}", path) from e
 
 
 def cv2dnn_embedding(net: Any, prewhitened: np.ndarray) -> np.ndarray:
