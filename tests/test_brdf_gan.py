@@ -1833,11 +1833,11 @@ def test_lip_ring_weight_pulls_the_rings(tmp_path):
 
 
 def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
-    """The Nyquist measure is ``metrics.nyquist_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded
-    specular and the normals' x and y (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2), then each one's
-    unbiased variance over the batch; a batch of one is refused; with the term G's measure moves toward a target above
-    and one below."""
-    from fitme_cli.reflectance.gan.metrics import nyquist_log_ratio
+    """The Nyquist measure is ``metrics.nyquist_log_ratio`` (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2)
+    then ``metrics.corner_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded specular and the normals'
+    x and y, then each of the 8's unbiased variance over the batch; a batch of one is refused; a diagonal checkerboard
+    raises both its ratios; with the term G's measure moves toward a target above and one below."""
+    from fitme_cli.reflectance.gan.metrics import corner_log_ratio, nyquist_log_ratio
     from fitme_cli.reflectance.gan.networks import decode_maps
     from fitme_cli.reflectance.gan.train import _nyquist
 
@@ -1846,14 +1846,17 @@ def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp
     for r, below in ((16, (2, 6)), (32, (2, 8))):
         x = torch.randn(3, 7, r, r, generator=g).clamp(-1, 1)
         m = decode_maps(GanImages.split(x), TINY)
-        v = nyquist_log_ratio(torch.cat([m.albedo.mean(1, keepdim=True), m.specular, x[:, 4:6]], 1), below)
+        maps = torch.cat([m.albedo.mean(1, keepdim=True), m.specular, x[:, 4:6]], 1)
+        v = torch.cat([nyquist_log_ratio(maps, below), corner_log_ratio(maps)], 1)
         got = _nyquist(x, regions, TINY)
-        torch.testing.assert_close(got[:, :4], v)
-        torch.testing.assert_close(got[:, 4:].mean(0), v.var(0))
+        assert got.shape == (3, 16)
+        torch.testing.assert_close(got[:, :8], v)
+        torch.testing.assert_close(got[:, 8:].mean(0), v.var(0))
     checker = (torch.arange(16)[:, None] + torch.arange(16)[None]) % 2 * 0.2 - 0.1
     rough = x[:, :, :16, :16].clone()
-    rough[:, 4] = rough[:, 4] * 0.1 + checker  # a texel checkerboard in the normals' x
-    assert (_nyquist(rough, regions, TINY)[:, 2] > _nyquist(x[:, :, :16, :16], regions, TINY)[:, 2] + 1).all()
+    rough[:, 4] = rough[:, 4] * 0.1 + checker  # a diagonal texel checkerboard in the normals' x
+    before, after = _nyquist(x[:, :, :16, :16], regions, TINY), _nyquist(rough, regions, TINY)
+    assert (after[:, 2] > before[:, 2] + 1).all() and (after[:, 6] > before[:, 6] + 1).all()
     with pytest.raises(ValueError, match="_nyquist needs a batch of at least 2 samples"):
         _nyquist(x[:1], regions, TINY)
     _check_shifted_pull("nyquist", lambda y, r: _nyquist(y, r, TINY), regions, _tiny_data(), tmp_path, 0.2)
@@ -3953,6 +3956,50 @@ def test_nyquist_log_ratio_known_values_gradients_and_bad_input():
         nyquist_log_ratio(torch.zeros(1, 16, 16))
 
 
+def test_corner_log_ratio_known_values_reference_gradients_and_bad_input():
+    """White noise ~0; a diagonal checkerboard over faint noise far above, while a checkerboard of columns (energy at
+    the u Nyquist, v 0: outside the block) stays ~0 though ``nyquist_log_ratio`` sees both; per channel; a scale and an
+    offset change nothing; equal to a loop over the bins of numpy's FFT; float64 gradients; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import corner_log_ratio, nyquist_log_ratio
+
+    g = torch.Generator().manual_seed(0)
+    white = torch.randn(16, 1, 64, 64, generator=g, dtype=torch.float64)
+    assert abs(float(corner_log_ratio(white, 4).mean())) < 0.2  # 81 bins: the default's 9 at 64^2 are noisy
+    yy, xx = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    diagonal = ((yy + xx) % 2).double()[None, None] * 0.1 + 0.01 * white
+    columns = (xx % 2).double()[None, None] * 0.1 + 0.01 * white
+    got = corner_log_ratio(torch.cat([diagonal, columns], 1), 4)
+    assert got.shape == (16, 2) and float(got[:, 0].min()) > 5 and float(got[:, 1].abs().mean()) < 0.5
+    assert float(nyquist_log_ratio(columns).min()) > 3
+    torch.testing.assert_close(corner_log_ratio(3 * white + 1, 4), corner_log_ratio(white, 4))
+
+    x = torch.randn(2, 1, 32, 32, generator=g, dtype=torch.float64)
+    r, k = 32, 2
+    win = np.hanning(r + 1)[:r]  # periodic Hann
+    ref = []
+    for m in x[:, 0].numpy():
+        f = np.abs(np.fft.fft2((m - m.mean()) * win[:, None] * win[None, :])) ** 2
+        near, far = [], []
+        for i in range(r):
+            for j in range(r):
+                if r // 4 <= i <= 3 * r // 4 and r // 4 <= j <= 3 * r // 4:
+                    (near if abs(i - r // 2) <= k and abs(j - r // 2) <= k else far).append(f[i, j])
+        ref.append(np.log(np.mean(near) / np.mean(far)))
+    torch.testing.assert_close(corner_log_ratio(x, k)[:, 0], torch.tensor(ref, dtype=torch.float64))
+    z = torch.randn(1, 1, 256, 256, generator=g)  # the default half-width: 0.02 R, 5 bins at 256^2, 1 at least
+    torch.testing.assert_close(corner_log_ratio(z), corner_log_ratio(z, 5))
+    assert not torch.allclose(corner_log_ratio(z), corner_log_ratio(z, 4))
+    torch.testing.assert_close(corner_log_ratio(z[..., :16, :16]), corner_log_ratio(z[..., :16, :16], 1))
+    y = torch.randn(1, 1, 16, 16, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(corner_log_ratio, (y,))
+    for bad, hw in ((torch.zeros(1, 1, 15, 15), None), (torch.zeros(1, 1, 6, 6), None),
+                    (torch.zeros(1, 1, 16, 16), 4), (torch.zeros(1, 1, 16, 16), -1)):
+        with pytest.raises(ValueError, match=r"expected an even R >= 8 and 0 <= half_width < R / 4"):
+            corner_log_ratio(bad, hw)
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps"):
+        corner_log_ratio(torch.zeros(1, 16, 16))
+
+
 def test_hairline_reach_is_the_hairline_band_and_the_scalp_behind_it():
     """And ``hairline_references``: the face side of the band, and the scalp well behind the reach."""
     from fitme_cli.reflectance.gan.data import (hairline_band, hairline_reach, hairline_references, hairline_zones,
@@ -4516,7 +4563,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
                       "eye_near_bands_by_half", "albedo_specular_link_by_region",
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
-                      "beard_band_rms_bearded", "nyquist_log_ratio", "relief_band_by_region",
+                      "beard_band_rms_bearded", "nyquist_log_ratio", "corner_log_ratio", "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
                       "brow_profile", "lip_ring_log_luminance"}
@@ -4628,6 +4675,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     nyq = m["nyquist_log_ratio"]  # per map and side: the mean, the 10th and 90th percentiles
     assert list(nyq) == ["albedo", "specular", "normal_x", "normal_y"]
     assert all(list(v) == ["data", "gan"] and all(q[1] <= q[0] <= q[2] for q in v.values()) for v in nyq.values())
+    corner = m["corner_log_ratio"]  # per map and side: the mean, the 10th, 50th and 90th percentiles
+    assert list(corner) == ["albedo", "specular", "normal_x", "normal_y"]
+    assert all(list(v) == ["data", "gan"] and all(q[1] <= q[2] <= q[3] and q[1] <= q[0] <= q[3] for q in v.values())
+               for v in corner.values())
     beards = m["beard_band_rms_bearded"]  # per side: how many samples are bearded, their mean band RMS (or None)
     assert list(beards) == ["data", "gan"] and all(list(v) == ["samples", "fine_mid_coarse"] for v in beards.values())
     assert all((v["fine_mid_coarse"] is None) == (v["samples"] == 0) for v in beards.values())

@@ -49,7 +49,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
            "region_edge_sharpness", "region_slope_link", "row_profile", "hairline_edge_coherence",
-           "dark_speck_depth", "nyquist_log_ratio", "region_band_skew", "region_band_neighbour",
+           "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "region_band_skew", "region_band_neighbour",
            "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
@@ -442,6 +442,32 @@ def nyquist_log_ratio(x: torch.Tensor, below: tuple[int, int] | None = None) -> 
     nyq = f[..., h, :].mean(-1) + f[..., :, h].mean(-1)
     ref = f[..., h - hi:h - lo, :].mean((-2, -1)) + f[..., :, h - hi:h - lo].mean((-2, -1))
     return (nyq.clamp_min(1e-30) / ref.clamp_min(1e-30)).log()
+
+
+def corner_log_ratio(x: torch.Tensor, half_width: int | None = None) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units, R even and >= 8 -> (N, C): per sample and channel, the log of the mean FFT
+    energy in the square of ``half_width`` k bins around the diagonal corner (R / 2, R / 2) (frequencies within k bins
+    of Nyquist along both u and v) over the mean energy of the rest of the block [R / 4, 3 R / 4]^2 (both frequencies
+    at least 1/4 cycle per texel), the map Hann-windowed. Default k = max(1, round(0.02 R)), 5 at 256^2; 0 <= k < R / 4.
+    ~0 for white noise, large for a diagonal checkerboard (each texel against its diagonal neighbours), which
+    ``nyquist_log_ratio`` dilutes over the whole Nyquist row and column. At 343.17 kimg (64 maps each at 256^2, k 5,
+    q10 / q50 / q90) the G_ema normals x gave -3.97 / -3.56 / -3.26 against the data's -5.39 / -5.01 / -4.42, and the
+    specular +0.16 against +0.01 at the median, after a judge found the specular's diagonal checkerboard
+    (docs/brdf_gan.md)."""
+    if x.ndim != 4 or not x.is_floating_point() or x.shape[-1] != x.shape[-2]:
+        raise ValueError(f"expected float (N, C, R, R) maps, got {tuple(x.shape)} {x.dtype}")
+    r = x.shape[-1]
+    k = max(1, round(0.02 * r)) if half_width is None else half_width
+    if r % 2 or r < 8 or not 0 <= k < r // 4:
+        raise ValueError(f"expected an even R >= 8 and 0 <= half_width < R / 4, got R {r}, half_width {k}")
+    win = torch.hann_window(r, periodic=True, dtype=x.dtype, device=x.device)
+    f = torch.fft.fft2((x - x.mean((2, 3), keepdim=True)) * win[:, None] * win[None, :]).abs().square()
+    h, q = r // 2, r // 4
+    block = f[..., q:r - q + 1, q:r - q + 1]  # unshifted layout: bins R/4..3R/4 are the frequencies >= 1/4 cycle
+    near = torch.zeros(block.shape[-2:], dtype=torch.bool, device=x.device)
+    near[h - q - k:h - q + k + 1, h - q - k:h - q + k + 1] = True
+    corner, rest = block[..., near].mean(-1), block[..., ~near].mean(-1)  # a mask, not a difference of sums
+    return (corner.clamp_min(1e-30) / rest.clamp_min(1e-30)).log()
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

@@ -24,7 +24,7 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence, texel_lattice, LATTICE_PARTS,
                       region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
                       ring_profile, row_profile, region_band_correlation, hairline_edge_coherence,
-                      dark_speck_depth, nyquist_log_ratio)
+                      dark_speck_depth, nyquist_log_ratio, corner_log_ratio)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _eye_flat, _lip_ring, _lip_ring_counts, _mouth,
@@ -124,6 +124,7 @@ class _Side:
     beard_bands: torch.Tensor  # (N, 3) per sample, the log luminance's three finest band RMS over ``data.beard_zone``
     # (N, 4) per sample ``metrics.nyquist_log_ratio`` of the albedo (mean of r, g, b), the specular, normals x and y
     nyquist: torch.Tensor
+    corner: torch.Tensor  # (N, 4) per sample ``metrics.corner_log_ratio`` of the same four maps
     # (2 * n, 3) mean over samples, log linear albedo: ``metrics.ring_profile`` over each half of
     # ``data.eye_ring_halves`` (the near bands above the openings, then below; n in all), then its absolute value
     eye_halves: torch.Tensor
@@ -148,7 +149,7 @@ class _Side:
 # the ``_Side`` fields ``_measure`` keeps per sample
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows", "mouth_rows",
                "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
-               "nyquist", "eye_flat", "brow_profile", "lip_ring")
+               "nyquist", "corner", "eye_flat", "brow_profile", "lip_ring")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -325,6 +326,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "mouth_rows": _mouth_rows(net, regions, G.settings)[:, :mouth_k * 3].view(len(x), mouth_k, 3),
             "hairline_edge": hairline_edge_coherence(x[:, :3], *hairline),
             "nyquist": nyquist_log_ratio(grain_maps),
+            "corner": corner_log_ratio(grain_maps),
             "hairline_specks": torch.stack([dark_speck_depth(x[:, :3], zones == z, *hairline[1:]) for z in (1, 2)], 1),
             "lattice": texel_lattice(net),
             "specular_spectra": region_spectrum(x[:, 3], regions),
@@ -595,6 +597,12 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "nyquist_log_ratio": {name: {side: _mean_quantiles(m.nyquist[:, c], (0.1, 0.9))
                                      for side, m in (("data", real), ("gan", gan))}
                               for c, name in enumerate(("albedo", "specular", "normal_x", "normal_y"))},
+        # a diagonal checkerboard (the 343.17 kimg judge): per sample, the log of the mean FFT energy within 0.02 R bins
+        # of the corner (R / 2, R / 2) over the rest of the block of frequencies >= 1/4 cycle
+        # (``metrics.corner_log_ratio``), its mean and 10 / 50 / 90 % quantiles
+        "corner_log_ratio": {name: {side: _mean_quantiles(m.corner[:, c], (0.1, 0.5, 0.9))
+                                    for side, m in (("data", real), ("gan", gan))}
+                             for c, name in enumerate(("albedo", "specular", "normal_x", "normal_y"))},
         # dark specks along the hairline (the 308.28 kimg judge N): per sample, how far the reach's texels fall below the
         # darker of the skin's and the hair's 1 % quantile (``metrics.dark_speck_depth``, log luminance, x 1000), over
         # the hairline band and over the scalp behind it: the mean over samples and the 90 % quantile
