@@ -1843,28 +1843,38 @@ def test_lip_ring_weight_pulls_the_rings(tmp_path):
 def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
     """The Nyquist measure is ``metrics.nyquist_log_ratio`` (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2)
     then ``metrics.corner_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded specular and the normals'
-    x and y, then each of the 8's unbiased variance over the batch; a batch of one is refused; a diagonal checkerboard
-    raises both its ratios; with the term G's measure moves toward a target above and one below."""
+    x and y, the same 8 over ``data.face_square``'s crop (the whole map at 16^2), then each of the 16's unbiased
+    variance over the batch; a batch of one is refused; a diagonal checkerboard raises both its ratios; one on the
+    face's crop alone raises the face's ratios more than the whole map's; with the term G's measure moves toward a
+    target above and one below."""
+    from fitme_cli.reflectance.gan.data import face_square
     from fitme_cli.reflectance.gan.metrics import corner_log_ratio, nyquist_log_ratio
     from fitme_cli.reflectance.gan.networks import decode_maps
     from fitme_cli.reflectance.gan.train import _nyquist
 
     regions = _two_regions()
     g = torch.Generator().manual_seed(0)
-    for r, below in ((16, (2, 6)), (32, (2, 8))):
+    for r, below in ((16, (2, 6)), (32, (2, 8)), (64, (2, 8))):
         x = torch.randn(3, 7, r, r, generator=g).clamp(-1, 1)
         m = decode_maps(GanImages.split(x), TINY)
         maps = torch.cat([m.albedo.mean(1, keepdim=True), m.specular, x[:, 4:6]], 1)
-        v = torch.cat([nyquist_log_ratio(maps, below), corner_log_ratio(maps)], 1)
+        row, col, side = face_square(r)
+        face = maps[..., row:row + side, col:col + side]
+        v = torch.cat([nyquist_log_ratio(maps, below), corner_log_ratio(maps), nyquist_log_ratio(face),
+                       corner_log_ratio(face)], 1)
         got = _nyquist(x, regions, TINY)
-        assert got.shape == (3, 16)
-        torch.testing.assert_close(got[:, :8], v)
-        torch.testing.assert_close(got[:, 8:].mean(0), v.var(0))
-    checker = (torch.arange(16)[:, None] + torch.arange(16)[None]) % 2 * 0.2 - 0.1
-    rough = x[:, :, :16, :16].clone()
-    rough[:, 4] = rough[:, 4] * 0.1 + checker  # a diagonal texel checkerboard in the normals' x
-    before, after = _nyquist(x[:, :, :16, :16], regions, TINY), _nyquist(rough, regions, TINY)
-    assert (after[:, 2] > before[:, 2] + 1).all() and (after[:, 6] > before[:, 6] + 1).all()
+        assert got.shape == (3, 32)
+        torch.testing.assert_close(got[:, :16], v)
+        torch.testing.assert_close(got[:, 16:].mean(0), v.var(0))
+    smooth = torch.nn.functional.avg_pool2d(x, 3, 1, 1)  # 64^2: a face crop of 32^2 at rows 13-45, columns 16-48
+    assert face_square(64) == (13, 16, 32) and face_square(16) == (0, 0, 16) and face_square(256) == (53, 64, 128)
+    yy, xx = torch.meshgrid(torch.arange(64), torch.arange(64), indexing="ij")
+    inside = (yy >= 13) & (yy < 45) & (xx >= 16) & (xx < 48)
+    rough = smooth.clone()
+    rough[:, 4] += ((yy + xx) % 2 * 0.2 - 0.1) * inside  # a diagonal texel checkerboard in the normals' x, face only
+    before, after = _nyquist(smooth, regions, TINY), _nyquist(rough, regions, TINY)
+    assert (after[:, [2, 6, 10, 14]] > before[:, [2, 6, 10, 14]] + 1).all()
+    assert ((after - before)[:, 14] > (after - before)[:, 6]).all()  # the face's corner rises more than the map's
     with pytest.raises(ValueError, match="_nyquist needs a batch of at least 2 samples"):
         _nyquist(x[:1], regions, TINY)
     _check_shifted_pull("nyquist", lambda y, r: _nyquist(y, r, TINY), regions, _tiny_data(), tmp_path, 0.2)
@@ -4571,7 +4581,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
                       "eye_near_bands_by_half", "albedo_specular_link_by_region",
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
-                      "beard_band_rms_bearded", "nyquist_log_ratio", "corner_log_ratio", "relief_band_by_region",
+                      "beard_band_rms_bearded", "nyquist_log_ratio", "corner_log_ratio", "face_texel_checkerboard",
+                      "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
                       "brow_profile", "lip_ring_log_luminance"}
@@ -4687,6 +4698,12 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert list(corner) == ["albedo", "specular", "normal_x", "normal_y"]
     assert all(list(v) == ["data", "gan"] and all(q[1] <= q[2] <= q[3] and q[1] <= q[0] <= q[3] for q in v.values())
                for v in corner.values())
+    face = m["face_texel_checkerboard"]  # the same two ratios over the face's crop, each as the corner row
+    assert list(face) == ["nyquist_log_ratio", "corner_log_ratio"]
+    assert all(list(r) == ["albedo", "specular", "normal_x", "normal_y"] and all(
+        list(v) == ["data", "gan"] and all(q[1] <= q[2] <= q[3] and q[1] <= q[0] <= q[3] for q in v.values())
+        for v in r.values()) for r in face.values())
+    assert face["corner_log_ratio"] != corner  # a crop, not the whole map again
     beards = m["beard_band_rms_bearded"]  # per side: how many samples are bearded, their mean band RMS (or None)
     assert list(beards) == ["data", "gan"] and all(list(v) == ["samples", "fine_mid_coarse"] for v in beards.values())
     assert all((v["fine_mid_coarse"] is None) == (v["samples"] == 0) for v in beards.values())

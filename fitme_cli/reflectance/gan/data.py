@@ -8,6 +8,7 @@ as raw components in [-1, 1].
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -20,7 +21,7 @@ from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
 __all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "hairline_reach",
-           "hairline_references", "split_sides", "eye_openings", "eye_rings", "lip_rings", "brow_edges", "beard_zone", "HAIRLINE_LABEL",
+           "hairline_references", "split_sides", "eye_openings", "eye_rings", "lip_rings", "brow_edges", "beard_zone", "face_square", "HAIRLINE_LABEL",
            "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
@@ -193,6 +194,27 @@ def _layout_mask(resolution: int, mask: Callable[[np.ndarray], np.ndarray], key:
         cover = cv2.resize(m, (resolution,) * 2, interpolation=cv2.INTER_AREA)
         m = cover >= min(0.5, float(cover.max()) - 1e-6)
     return torch.from_numpy(m.astype(bool))
+
+
+_FACE_LABELS = ("skin", "forehead", "brows", "eyes", "nose", "lips")
+
+
+@functools.lru_cache(maxsize=8)
+def face_square(resolution: int) -> tuple[int, int, int]:
+    """(row, column, side) of a square crop of the face: side max(16, R / 2) (at most R), centred on the mean texel of
+    the shape model's face labels (skin, forehead, brows, eyes, nose, lips), moved inside the map. At 256^2 rows and
+    columns 53-181 and 64-192: 79 % face labels, 19 % scalp at its upper corners. The Nyquist term's face ratios: over
+    the whole map the scalp's strands, where G matches the data, hid a face whose normals carry ~14 times the data's
+    energy at the Nyquist row and column (346.00 kimg, docs/brdf_gan.md)."""
+    from ...shape.regions import REGIONS
+
+    regions = load_regions(resolution)
+    face = torch.isin(regions, torch.tensor([REGIONS.index(n) for n in _FACE_LABELS], dtype=regions.dtype))
+    rows, cols = face.nonzero(as_tuple=True)
+    side = min(max(16, resolution // 2), resolution)
+    row = min(max(round(float(rows.double().mean()) - side / 2), 0), resolution - side)
+    col = min(max(round(float(cols.double().mean()) - side / 2), 0), resolution - side)
+    return row, col, side
 
 
 def eye_openings(resolution: int) -> torch.Tensor:
