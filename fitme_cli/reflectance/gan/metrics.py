@@ -452,7 +452,7 @@ def corner_log_ratio(x: torch.Tensor, half_width: int | None = None) -> torch.Te
     ~0 for white noise, large for a diagonal checkerboard (each texel against its diagonal neighbours), which
     ``nyquist_log_ratio`` dilutes over the whole Nyquist row and column. At 343.17 kimg (64 maps each at 256^2, k 5,
     q10 / q50 / q90) the G_ema normals x gave -3.97 / -3.56 / -3.26 against the data's -5.39 / -5.01 / -4.42, and the
-    specular +0.16 against +0.01 at the median, after a judge found the specular's diagonal checkerboard
+    specular +0.16 against +0.01 at the median, after the 343.76 kimg judge found the specular's diagonal checkerboard
     (docs/brdf_gan.md)."""
     if x.ndim != 4 or not x.is_floating_point() or x.shape[-1] != x.shape[-2]:
         raise ValueError(f"expected float (N, C, R, R) maps, got {tuple(x.shape)} {x.dtype}")

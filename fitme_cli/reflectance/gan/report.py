@@ -602,7 +602,7 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "nyquist_log_ratio": {name: {side: _mean_quantiles(m.nyquist[:, c], (0.1, 0.9))
                                      for side, m in (("data", real), ("gan", gan))}
                               for c, name in enumerate(("albedo", "specular", "normal_x", "normal_y"))},
-        # a diagonal checkerboard (the 343.17 kimg judge): per sample, the log of the mean FFT energy within 0.02 R bins
+        # a diagonal checkerboard (the 343.76 kimg judge Y): per sample, the log of the mean FFT energy within 0.02 R bins
         # of the corner (R / 2, R / 2) over the rest of the block of frequencies >= 1/4 cycle
         # (``metrics.corner_log_ratio``), its mean and 10 / 50 / 90 % quantiles
         "corner_log_ratio": {name: {side: _mean_quantiles(m.corner[:, c], (0.1, 0.5, 0.9))

@@ -361,8 +361,8 @@ class TrainSettings:
     # variance within each batch. D's blurred downsampling hardly sees a texel checkerboard; at 318.61 kimg G_ema's
     # normals x read +1.23 against the data's -2.66 and the albedo +0.61 against +0.08, a judge's tell on every G map
     # (docs/brdf_gan.md). Since 2026-12-02 also each map's energy around the diagonal corner (``corner_log_ratio``): at
-    # 343.17 kimg a judge found the specular's diagonal checkerboard; G_ema's normals x read -3.56 there against the
-    # data's -5.01. And both over the face's crop (``data.face_square``): at 346.00 the normals' x read -1.47 on the
+    # 343.76 kimg a judge found the specular's diagonal checkerboard; at 343.17 G_ema's normals x read -3.56 there
+    # against the data's -5.01. And both over the face's crop (``data.face_square``): at 346.00 the normals' x read -1.47 on the
     # Nyquist row and column there against the data's -4.12, hidden in the whole map by the scalp, a judge's measure.
     # Drift-style (absolute, log units). 0: off
     nyquist_weight: float = 0.0
@@ -701,8 +701,8 @@ class TrainState:
     # target, and G's running mean of it
     relief_band_target: torch.Tensor | None = None
     running_relief_band: torch.Tensor | None = None
-    # (32,) float32: the data's Nyquist and corner log ratios, whole and face, and their within-batch variance (``_nyquist``), the term's
-    # target, and G's running mean of it
+    # (32,) float32: the data's Nyquist and corner log ratios, whole and face, and their within-batch variance
+    # (``_nyquist``), the term's target, and G's running mean of it
     nyquist_target: torch.Tensor | None = None
     running_nyquist: torch.Tensor | None = None
     # (k * 6,) float32: the data's normal skewness and x-y correlation per region (``_normal_symmetry``), the
