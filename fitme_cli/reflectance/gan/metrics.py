@@ -421,6 +421,13 @@ def dark_speck_depth(albedo: torch.Tensor, zone: torch.Tensor, face: torch.Tenso
     return (t[:, None] - lum[:, zone]).clamp_min(0).mean(1)
 
 
+def _windowed_power(x: torch.Tensor) -> torch.Tensor:
+    """(N, C, R, R) -> (N, C, R, R): the FFT power (unshifted) of each map, its mean removed, under a periodic Hann
+    window: without it the map's unmatched borders leak a broadband step into every row of the spectrum."""
+    win = torch.hann_window(x.shape[-1], periodic=True, dtype=x.dtype, device=x.device)
+    return torch.fft.fft2((x - x.mean((2, 3), keepdim=True)) * win[:, None] * win[None, :]).abs().square()
+
+
 def nyquist_log_ratio(x: torch.Tensor, below: tuple[int, int] | None = None) -> torch.Tensor:
     """x: (N, C, R, R) float, any units, R even and > 2 * below[1] -> (N, C): per sample and channel, the log of the
     mean FFT energy on the Nyquist row and column (frequency R / 2 along v or u, every frequency along the other) over
@@ -435,9 +442,7 @@ def nyquist_log_ratio(x: torch.Tensor, below: tuple[int, int] | None = None) -> 
     lo, hi = below if below is not None else (2, min(8, r // 2 - 2))
     if not 0 < lo < hi or r % 2 or r <= 2 * hi:
         raise ValueError(f"expected 0 < below[0] < below[1] and an even R > 2 * below[1], got below {below}, R {r}")
-    # a Hann window: without it the map's unmatched borders leak a broadband step into every row of the spectrum
-    win = torch.hann_window(r, periodic=True, dtype=x.dtype, device=x.device)
-    f = torch.fft.fft2((x - x.mean((2, 3), keepdim=True)) * win[:, None] * win[None, :]).abs().square()
+    f = _windowed_power(x)
     h = r // 2
     nyq = f[..., h, :].mean(-1) + f[..., :, h].mean(-1)
     ref = f[..., h - hi:h - lo, :].mean((-2, -1)) + f[..., :, h - hi:h - lo].mean((-2, -1))
@@ -460,8 +465,7 @@ def corner_log_ratio(x: torch.Tensor, half_width: int | None = None) -> torch.Te
     k = max(1, round(0.02 * r)) if half_width is None else half_width
     if r % 2 or r < 8 or not 0 <= k < r // 4:
         raise ValueError(f"expected an even R >= 8 and 0 <= half_width < R / 4, got R {r}, half_width {k}")
-    win = torch.hann_window(r, periodic=True, dtype=x.dtype, device=x.device)
-    f = torch.fft.fft2((x - x.mean((2, 3), keepdim=True)) * win[:, None] * win[None, :]).abs().square()
+    f = _windowed_power(x)
     h, q = r // 2, r // 4
     block = f[..., q:r - q + 1, q:r - q + 1]  # unshifted layout: bins R/4..3R/4 are the frequencies >= 1/4 cycle
     near = torch.zeros(block.shape[-2:], dtype=torch.bool, device=x.device)
