@@ -41,7 +41,7 @@ def _stop_requests():
 
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "g_channel_min", "g_channel_base",
-              "mapping_layers", "d_joint_branch")
+              "mapping_layers", "d_joint_branch", "layout_resolution")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "g_top_lr_mul", "g_top_lr_from",
                 "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
@@ -79,6 +79,11 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 @click.option("--mapping-layers", type=int, help="[2]")
 @click.option("--d-joint-branch/--no-d-joint-branch", default=None,
               help="A third D branch that sees albedos and normals together (not in the paper); may be added on --resume. [off]")
+@click.option("--layout/--no-layout", default=None,
+              help="G reads the data's UV layout (lips, brows, eyes, lashes, beard zone, the hairline's distance, the "
+                   "hair's flow, the coordinates) at every resolution from --layout-resolution up (not in the paper); "
+                   "may be added on --resume. [off]")
+@click.option("--layout-resolution", type=int, help="The lowest resolution whose blocks read the layout. [64]")
 @click.option("--batch", type=int, help="[4]")
 @click.option("--kimg", type=float, help="Train until this many thousand real images. [40]")
 @click.option("--r1-gamma", type=float, help="[3.0]")
@@ -329,14 +334,12 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
 
     from ..errors import InputNotFound, OutputNotWritable
     from ..io.atomic import atomic_write_bytes
-    from ..reflectance.gan.data import load_dataset, load_regions
+    from ..reflectance.gan.data import LAYOUT_CHANNELS, find_samples, layout_image, load_dataset, load_regions
     from ..reflectance.gan.metrics import detail_region
     from ..reflectance.gan.networks import GanSettings
     from ..reflectance.gan.train import (TrainSettings, can_bf16, can_compile, clear_running, compile_synthesis, load_checkpoint,
-                                         new_state, reset_mean_image, save_checkpoint, set_branch_noise,
+                                         new_state, reset_mean_image, save_checkpoint, set_branch_noise, set_layout_image,
                                          set_learning_rates, sync_patch_discriminator, train)
-
-    from ..reflectance.gan.data import find_samples
 
     find_samples(data_dir)  # a missing or empty data folder fails before anything else
     if compile_g and not can_compile():
@@ -357,6 +360,11 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     for name in _GAN_FLAGS:
         if flags.get(name) is not None:
             cfg["gan"][name] = flags[name]
+    if flags.get("layout") is not None:
+        cfg["gan"]["layout_channels"] = len(LAYOUT_CHANNELS) if flags["layout"] else 0
+    if cfg["gan"].get("layout_channels", 0) not in (0, len(LAYOUT_CHANNELS)):
+        raise click.BadParameter(f"layout_channels must be 0 or {len(LAYOUT_CHANNELS)} (data.LAYOUT_CHANNELS), "
+                                 f"got {cfg['gan']['layout_channels']}")
     if "resolution" in cfg["gan"] and "branch_resolution" not in cfg["gan"]:
         cfg["gan"]["branch_resolution"] = cfg["gan"]["resolution"]  # branch the top block, as by default
     for name in _TRAIN_FLAGS:
@@ -411,7 +419,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
                 raise click.BadParameter(f"{e} (on --resume only --channel-base, --channel-max, --g-channel-min and "
-                                         "--g-channel-base may grow, and --d-joint-branch be added)") from None
+                                         "--g-channel-base may grow, and --d-joint-branch and --layout be added)") from None
             grew = [f"{who}'s {r}x{r} {old(r)} -> {new(r)}" for who, old, new in
                     (("G", before.g_channels, state.gan.g_channels), ("D", before.channels, state.gan.channels))
                     for r in before.resolutions if old(r) != new(r)]
@@ -419,7 +427,11 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                 click.echo(f"widened: {', '.join(grew)} channels", err=True)
             if state.gan.d_joint_branch and not before.d_joint_branch:
                 click.echo("added D's joint branch (albedos and normals together)", err=True)
-            if not grew and state.gan.d_joint_branch == before.d_joint_branch:
+            if state.gan.layout_channels and not before.layout_channels:
+                click.echo(f"added G's layout inputs ({state.gan.layout_channels} maps from "
+                           f"{state.gan.layout_resolution}x{state.gan.layout_resolution})", err=True)
+            if not grew and (state.gan.d_joint_branch, state.gan.layout_channels) == (before.d_joint_branch,
+                                                                                    before.layout_channels):
                 click.echo("no layer changes width", err=True)
             run_cfg = run_dir / "config.json"
             kept = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
@@ -444,6 +456,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     elif state.learned_mean_image:
         reset_mean_image(state, data.float().mean(0))
         click.echo("the checkpoint's mean image was trained (before it became fixed): reset to the data mean", err=True)
+    if state.gan.layout_channels and not state.G.synthesis.layout_image.any():  # a new run, or the inputs just added
+        set_layout_image(state, layout_image(gan_settings.resolution))
     if state.train.link_weight > 0:
         state.link_mask = detail_region(load_regions(gan_settings.resolution))  # where --link-weight measures
     if state.train.region_terms:

@@ -21,7 +21,7 @@ from ...errors import InputNotFound, WrongLayout
 from .networks import GanSettings, ReflectanceMaps, encode_maps
 
 __all__ = ["find_samples", "load_sample", "load_dataset", "load_regions", "hairline_band", "hairline_zones", "hairline_reach",
-           "hairline_references", "split_sides", "eye_openings", "eye_rings", "lip_rings", "brow_edges", "beard_zone", "face_square", "HAIRLINE_LABEL",
+           "hairline_references", "split_sides", "eye_openings", "eye_rings", "lip_rings", "brow_edges", "beard_zone", "face_square", "layout_image", "LAYOUT_CHANNELS", "HAIRLINE_LABEL",
            "EYE_LABEL", "BROW_EDGE_LABEL", "SIDE_OFFSET"]
 
 _KINDS = ("albedo", "specular", "normals")
@@ -197,6 +197,50 @@ def _layout_mask(resolution: int, mask: Callable[[np.ndarray], np.ndarray], key:
 
 
 _FACE_LABELS = ("skin", "forehead", "brows", "eyes", "nose", "lips")
+
+# What G reads of the layout (``GanSettings.layout_channels``), in this order: the soft masks with which ``fitme
+# dataset`` places the anatomy (``skin_data.SkinLayout.soft``), then the hairline's signed distance into the scalp, the
+# hair's flow as the cosine and sine of twice its angle (a strand has no head or tail), and the texel's column and row.
+_LAYOUT_SOFT = ("lips", "mouth_line", "lips_zone", "brows", "eye_inside", "lash", "eyes", "beard", "neck", "face")
+LAYOUT_CHANNELS = _LAYOUT_SOFT + ("hair_distance", "hair_flow_cos", "hair_flow_sin", "column", "row")
+# UV units per unit of the hair_distance channel: the data's hairline lies 0-0.036 UV inside the scalp's edge
+# (``hairline_reach``), which this puts at 0-1.5
+_HAIR_DISTANCE_UV = 0.024
+# Each map is scaled to unit RMS over the map, as G's features are about unit, so that an Adam step on a weight moves
+# what each input adds alike (the equalised learning rate's point), but by at most this: unscaled, the 346.00 kimg G's
+# layout weights grew to only 0.02-0.05 in a kimg against ~1 for its features' (2026-12-04); unit RMS would take the
+# thinnest masks, the lashes and the mouth line, to 38-69x
+_LAYOUT_GAIN_MAX = 10.0
+
+
+@functools.lru_cache(maxsize=4)
+def _layout_image(resolution: int) -> np.ndarray:
+    from ...perception.registry import ensure_models
+    from ..skin_data import skin_layout
+
+    size = max(resolution, 64)
+    lay = skin_layout(ensure_models(["shape_model"]), size)
+    coord = (np.arange(size, dtype=np.float32) + 0.5) / size * 2 - 1
+    maps = [lay.soft[k] for k in _LAYOUT_SOFT]
+    maps += [np.clip(lay.hair_dist / _HAIR_DISTANCE_UV, -1.5, 1.5), np.cos(2 * lay.hair_angle), np.sin(2 * lay.hair_angle),
+             np.broadcast_to(coord[None, :], (size, size)), np.broadcast_to(coord[:, None], (size, size))]
+    rms = [float(np.sqrt(np.mean(np.square(m, dtype=np.float64)))) for m in maps]
+    maps = [m * (_LAYOUT_GAIN_MAX if r * _LAYOUT_GAIN_MAX <= 1 else 1 / r) for m, r in zip(maps, rms)]  # r may be 0
+    if size != resolution:
+        maps = [cv2.resize(np.ascontiguousarray(m, np.float32), (resolution,) * 2, interpolation=cv2.INTER_AREA) for m in maps]
+    return np.stack(maps).astype(np.float32)
+
+
+def layout_image(resolution: int) -> torch.Tensor:
+    """(K, R, R) float32, K = len(LAYOUT_CHANNELS): the training data's layout as G reads it
+    (``SynthesisNetwork.layout_image``): masks (0 outside, > 0 inside), the hairline's signed distance (> 0 in the
+    scalp, clipped at 0.036 UV either side), the flow's cosine and sine, and the coordinates (column left to right,
+    row top to bottom, 0 at the centre), each scaled to unit RMS over the map or by 10 where that is less (the masks
+    of the lips, mouth line, lips zone, brows, eye openings, lashes and eyes). Below 64^2, the 64^2 maps
+    area-averaged."""
+    if resolution < 1:
+        raise ValueError(f"expected a resolution >= 1, got {resolution}")
+    return torch.from_numpy(_layout_image(resolution).copy())
 
 
 @functools.lru_cache(maxsize=8)

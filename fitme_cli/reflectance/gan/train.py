@@ -45,7 +45,7 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
            "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
            "tail_loss", "spread_loss", "set_branch_noise", "clear_running", "can_compile", "compile_synthesis", "random_crops",
            "new_patch_discriminator", "sync_patch_discriminator", "focus_texels", "TEXEL_MAPS", "texel_maps",
-           "sheet_ranges"]
+           "sheet_ranges", "set_layout_image"]
 
 
 # the per-region drift terms, each with a ``{term}_weight`` and ``{term}_beta`` setting, a ``{term}_target`` and a
@@ -2204,6 +2204,19 @@ def _drop_mean_image_state(G: Generator, tensors: dict[str, torch.Tensor]) -> bo
             moved[f"opt_G.{int(i) - (int(i) > gone)}.{rest}"] = v
     tensors.update(moved)
     return True
+
+
+def set_layout_image(state: TrainState, layout: torch.Tensor) -> None:
+    """Set G's and G_ema's ``layout_image`` to ``layout`` (K, R, R) (``data.layout_image``). Raises ValueError for a G
+    without layout inputs or a layout of another shape."""
+    syn = state.G.synthesis
+    if not state.gan.layout_channels:
+        raise ValueError("this G has no layout inputs (GanSettings.layout_channels is 0)")
+    if tuple(layout.shape) != tuple(syn.layout_image.shape):
+        raise ValueError(f"expected a layout of shape {tuple(syn.layout_image.shape)}, got {tuple(layout.shape)}")
+    with torch.no_grad():
+        syn.layout_image.copy_(layout)
+        state.G_ema.synthesis.layout_image.copy_(layout)
 
 
 def reset_mean_image(state: TrainState, data_mean: torch.Tensor) -> None:

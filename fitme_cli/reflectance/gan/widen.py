@@ -8,7 +8,9 @@ by 1/sqrt(fan in) at run time; where that gain changes with the width, the store
 so the effective weight stays. The modulated convs need no rescale: demodulation divides by the norm
 over the input channels, which zero columns do not change. The same way D can gain its joint branch
 (``GanSettings.d_joint_branch``): the new branch starts from its init and the last block reads its
-features through zero weights.
+features through zero weights. And G can gain its layout inputs (``GanSettings.layout_channels``): each conv1 and
+toImage from ``layout_resolution`` up reads them through zero weights, appended after its features; the caller sets
+the new ``layout_image`` (``train.set_layout_image``).
 """
 
 from __future__ import annotations
@@ -65,13 +67,21 @@ def widen_state(state, gan: GanSettings):
     Counters, ADA and train settings carry over; both Adam states start fresh (their shapes changed)."""
     from .train import new_state
 
-    grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch"}
+    grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch", "layout_channels",
+             "layout_resolution"}
     fixed = {f.name for f in dataclasses.fields(GanSettings)} - grows
     changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
     if changed:
         raise ValueError(f"only the channels can grow on a trained run; {', '.join(changed)} would change")
     if state.gan.d_joint_branch and not gan.d_joint_branch:
         raise ValueError("D's joint branch cannot be removed from a run that has one (its trained weights would be lost)")
+    old_k = state.gan.layout_channels
+    if old_k and (gan.layout_channels, gan.layout_resolution) != (old_k, state.gan.layout_resolution):
+        raise ValueError(f"G's layout inputs cannot change once a run has them ({old_k} maps from "
+                         f"{state.gan.layout_resolution}x{state.gan.layout_resolution})")
+    if old_k and any(gan.g_channels(r) != state.gan.g_channels(r) for r in gan.resolutions if gan.layout_inputs(r)):
+        # the layout's weights sit after the features; more features would put old ones where the layout's are
+        raise ValueError("G's channels cannot grow where it reads its layout inputs")
     for r in state.gan.resolutions:
         for who, old, new in (("D", state.gan.channels(r), gan.channels(r)),
                               ("G", state.gan.g_channels(r), gan.g_channels(r))):
