@@ -82,6 +82,45 @@ def test_split_modulated_conv_refuses_mismatched_inputs():
         ops.modulated_conv2d_extra(x, torch.randn(1, 2, 4, 4), torch.randn(2, 6, 3, 3), torch.randn(2, 6))
 
 
+def test_spatial_gain_scales_each_channel_by_its_mix_of_the_maps():
+    x = torch.randn(3, 4, 5, 6, dtype=torch.float64)
+    for b in (1, 3):
+        layout = torch.randn(b, 2, 5, 6, dtype=torch.float64)
+        w = torch.randn(4, 2, dtype=torch.float64)
+        out = ops.spatial_gain(x, layout, w)
+        assert out.shape == x.shape and out.dtype == x.dtype
+        torch.testing.assert_close(out, ops._spatial_gain_ref(x, layout, w), rtol=1e-12, atol=1e-12)
+    # known values: zero weights change nothing; a weight of -1 on a mask of ones silences that channel inside it
+    layout = torch.zeros(1, 2, 5, 6, dtype=torch.float64)
+    layout[0, 1, 1:3, 2:4] = 1
+    assert torch.equal(ops.spatial_gain(x, layout, torch.zeros(4, 2, dtype=torch.float64)), x)
+    w = torch.zeros(4, 2, dtype=torch.float64)
+    w[2, 1] = -1
+    out = ops.spatial_gain(x, layout, w)
+    assert (out[:, 2, 1:3, 2:4] == 0).all()
+    inside = torch.zeros(5, 6, dtype=torch.bool)
+    inside[1:3, 2:4] = True
+    assert torch.equal(out[:, 2][:, ~inside], x[:, 2][:, ~inside]) and torch.equal(out[:, [0, 1, 3]], x[:, [0, 1, 3]])
+    # gradients: float64 gradcheck, and the same as the reference's
+    x = torch.randn(2, 3, 4, 4, dtype=torch.float64, requires_grad=True)
+    layout = torch.randn(1, 2, 4, 4, dtype=torch.float64)
+    w = torch.randn(3, 2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b: ops.spatial_gain(a, layout, b), (x, w))
+    g_fast = torch.autograd.grad(ops.spatial_gain(x, layout, w).square().sum(), (x, w))
+    g_ref = torch.autograd.grad(ops._spatial_gain_ref(x, layout, w).square().sum(), (x, w))
+    for a, b in zip(g_fast, g_ref):
+        torch.testing.assert_close(a, b)
+
+
+def test_spatial_gain_refuses_mismatched_inputs():
+    x = torch.randn(2, 3, 4, 4)
+    for layout, w, shown in ((torch.randn(1, 2, 8, 8), torch.randn(3, 2), r"layout \(1, 2, 8, 8\)"),
+                             (torch.randn(3, 2, 4, 4), torch.randn(3, 2), r"layout \(3, 2, 4, 4\)"),
+                             (torch.randn(1, 2, 4, 4), torch.randn(2, 3), r"weight \(2, 3\)")):
+        with pytest.raises(ValueError, match=r"spatial_gain: expected x \(B, C, H, W\).*got x \(2, 3, 4, 4\), .*" + shown):
+            ops.spatial_gain(x, layout, w)
+
+
 # --- the networks ----------------------------------------------------------------------------------------
 
 
@@ -122,6 +161,41 @@ def test_g_reads_its_layout_where_the_settings_say_and_nowhere_else():
         assert w.grad[:, -K:].abs().sum() > 0
     # the coarse stage stops before the layout blocks without touching them
     assert syn(ws, max_resolution=4).albedo.shape == (2, 3, 4, 4)
+
+
+def test_layout_gain_scales_g_s_features_where_the_settings_say():
+    gain = dataclasses.replace(LAYOUT, layout_gain=True)
+    with pytest.raises(ValueError, match=r"layout_gain needs layout inputs \(layout_channels > 0\)"):
+        dataclasses.replace(TINY, layout_gain=True)
+    G = Generator(gain)
+    syn = G.synthesis
+    assert syn.trunk["b4"].conv1.layout_gain is None and syn.trunk["b4"].to_image.layout_gain is None
+    c8, c16 = gain.g_channels(8), gain.g_channels(16)
+    for name in ("albedo", "specular", "normals"):
+        for res, c in ((8, c8), (16, c16)):
+            block = syn.branches[name][f"b{res}"]
+            assert block.conv0.layout_gain is None  # conv0 reads no layout
+            for layer in (block.conv1, block.to_image):
+                assert layer.layout_gain.shape == (c, K) and not layer.layout_gain.any()  # zero: no gain at start
+    assert Generator(LAYOUT).synthesis.branches["albedo"]["b16"].conv1.layout_gain is None
+    # at zero it computes what the G without it does; set, it moves the maps most where the layout is
+    plain = Generator(LAYOUT)
+    plain.load_state_dict({k: v for k, v in G.state_dict().items() if "layout_gain" not in k})
+    with torch.no_grad():
+        syn.layout_image.zero_()
+        syn.layout_image[1, 2:6, 9:13] = 1.0
+        plain.synthesis.layout_image.copy_(syn.layout_image)
+    ws = G.ws(torch.randn(2, LAYOUT.z_dim))
+    with torch.no_grad():
+        before = syn(ws, noise_mode="const").cat()
+        torch.testing.assert_close(before, plain.synthesis(ws, noise_mode="const").cat(), rtol=0, atol=0)
+        syn.branches["albedo"]["b16"].to_image.layout_gain[:, 1] = -1.0
+        moved = (syn(ws, noise_mode="const").cat() - before).abs()
+    assert moved[:, :3, 2:6, 9:13].min() > 0 and moved[:, :3, 10:, :6].max() == 0 and moved[:, 3:].max() == 0
+    # every gain weight learns
+    syn(ws, noise_mode="const").cat().square().mean().backward()
+    for layer in (syn.branches["specular"]["b8"].conv1, syn.branches["normals"]["b16"].to_image):
+        assert layer.layout_gain.grad.abs().sum() > 0
 
 
 def test_set_layout_image_sets_both_generators_and_refuses_what_does_not_fit():
@@ -189,6 +263,67 @@ def test_a_run_s_layout_cannot_change_nor_its_features_grow_where_it_is_read():
     # D's may: it reads no layout
     wide = widen_state(state, dataclasses.replace(LAYOUT, d_joint_branch=True))
     assert wide.D.joint_branch is not None and wide.gan.layout_channels == K
+
+
+def test_adding_the_layout_gain_keeps_what_g_computes_and_adam_s_state():
+    from fitme_cli.reflectance.gan.train import train_step
+    from fitme_cli.reflectance.gan.widen import widen_state
+
+    state = _perturbed(new_state(LAYOUT, TrainSettings(batch=4, kimg=1, channels_last=False)))
+    set_layout_image(state, torch.rand(K, 16, 16) * 2 - 1)
+    reals = torch.randn(8, 7, 16, 16)
+    for i in range(2):  # Adam's state for every parameter
+        train_step(state, reals[4 * (i % 2) : 4 * (i % 2) + 4])
+    gained = widen_state(state, dataclasses.replace(LAYOUT, layout_gain=True))
+    z = torch.randn(3, LAYOUT.z_dim)
+    with torch.no_grad():
+        torch.testing.assert_close(gained.G_ema(z, noise_mode="const").cat(), state.G_ema(z, noise_mode="const").cat(),
+                                   rtol=1e-5, atol=1e-5)
+    # Adam goes on as it was: every old parameter's state by name, none for the new gains (fresh)
+    old = dict(state.G.named_parameters())
+    for name, p in gained.G.named_parameters():
+        if "layout_gain" in name:
+            assert p not in gained.opt_G.state
+            continue
+        a, b = state.opt_G.state[old[name]], gained.opt_G.state[p]
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
+    d_old = dict(state.D.named_parameters())
+    for name, p in gained.D.named_parameters():
+        assert torch.equal(gained.opt_D.state[p]["exp_avg_sq"], state.opt_D.state[d_old[name]]["exp_avg_sq"])
+    train_step(gained, reals[:4])  # and trains on
+    assert gained.G.synthesis.branches["normals"]["b16"].to_image.layout_gain.abs().sum() > 0
+    with pytest.raises(ValueError, match="layout gain cannot be removed"):
+        widen_state(gained, LAYOUT)
+
+
+def test_widening_carries_adam_s_second_moment_into_the_grown_tensors():
+    from fitme_cli.reflectance.gan.train import train_step
+    from fitme_cli.reflectance.gan.widen import _gain, carry_adam, widen_state
+
+    state = _perturbed(new_state(TINY, TrainSettings(batch=4, kimg=1, channels_last=False)))
+    train_step(state, torch.randn(4, 7, 16, 16))
+    wide = widen_state(state, dataclasses.replace(TINY, channel_base=128))  # G's and D's 8x8 and 16x16 twice as wide
+    old = dict(state.G.named_parameters())
+    grown = 0
+    for name, p in wide.G.named_parameters():
+        v_old, v_new = state.opt_G.state[old[name]]["exp_avg_sq"], wide.opt_G.state[p]["exp_avg_sq"]
+        assert v_new.shape == p.shape
+        if v_old.shape == p.shape:
+            continue
+        grown += 1
+        part = tuple(slice(0, n) for n in v_old.shape)
+        owner = name.rpartition(".")[0]
+        scale = 1.0
+        if name.endswith(".weight"):  # the stored weight was rescaled by the gain's change, its gradient inversely
+            scale = _gain(dict(state.G.named_modules())[owner]) / _gain(dict(wide.G.named_modules())[owner])
+        torch.testing.assert_close(v_new[part], v_old / scale**2)
+        rest = torch.ones_like(v_new, dtype=torch.bool)
+        rest[part] = False
+        torch.testing.assert_close(v_new[rest], torch.full_like(v_new[rest], float((v_old / scale**2).mean())))
+    assert grown > 5
+    # a module with no state (never stepped) carries nothing
+    fresh = new_state(TINY, TrainSettings(batch=4, kimg=1))
+    assert carry_adam(fresh.opt_G, fresh.G, wide.opt_G, wide.G) == 0
 
 
 # --- the layout maps and the command line ----------------------------------------------------------------
@@ -262,6 +397,16 @@ def test_train_command_adds_the_layout_to_a_new_run_and_on_resume(tmp_path, mode
     torch.testing.assert_close(state.G.synthesis.layout_image, layout_image(16))
     r = CliRunner().invoke(main, [*base, "-o", str(run), "--kimg", "0.012", "--resume", "--no-layout"])
     assert r.exit_code == 2 and "layout inputs cannot change once a run has them" in r.output
+    # the gain, on resume (to a run with the layout) and on a new run, never without the layout
+    r = CliRunner().invoke(main, [*base, "-o", str(run), "--kimg", "0.012", "--resume", "--layout-gain"])
+    assert r.exit_code == 0, r.output
+    assert "added G's layout gain" in r.output and load_checkpoint(run / "checkpoint.safetensors").gan.layout_gain
+    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "gain"), "--kimg", "0.004", "--layout", "--layout-resolution",
+                                  "8", "--layout-gain"])
+    assert r.exit_code == 0, r.output
+    assert load_checkpoint(tmp_path / "gain" / "checkpoint.safetensors").gan.layout_gain
+    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "nogain"), "--kimg", "0.004", "--layout-gain"])
+    assert r.exit_code == 2 and "layout_gain needs layout inputs" in r.output, r.output
     cfg = tmp_path / "cfg.json"
     cfg.write_text('{"gan": {"layout_channels": 4}}')
     r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "bad"), "--kimg", "0.004", "--config", str(cfg)])

@@ -41,7 +41,7 @@ def _stop_requests():
 
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "g_channel_min", "g_channel_base",
-              "mapping_layers", "d_joint_branch", "layout_resolution")
+              "mapping_layers", "d_joint_branch", "layout_resolution", "layout_gain")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "g_top_lr_mul", "g_top_lr_from",
                 "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
@@ -84,6 +84,9 @@ _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
                    "hair's flow, the coordinates) at every resolution from --layout-resolution up (not in the paper); "
                    "may be added on --resume. [off]")
 @click.option("--layout-resolution", type=int, help="The lowest resolution whose blocks read the layout. [64]")
+@click.option("--layout-gain/--no-layout-gain", default=None,
+              help="With --layout: the layout also scales the features G reads it with, texel by texel (SPADE's "
+                   "gamma; not in the paper); may be added on --resume. [off]")
 @click.option("--batch", type=int, help="[4]")
 @click.option("--kimg", type=float, help="Train until this many thousand real images. [40]")
 @click.option("--r1-gamma", type=float, help="[3.0]")
@@ -372,7 +375,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             cfg["train"][name] = flags[name]
     try:
         train_settings = TrainSettings(**cfg["train"])
-        gan_settings = GanSettings(**cfg["gan"])
+        # on --resume --layout-gain may rest on the run's own layout inputs: widen_state checks it against the run
+        gan_settings = GanSettings(**(dict(cfg["gan"], layout_gain=False) if resume else cfg["gan"]))
     except (TypeError, ValueError) as e:
         raise click.BadParameter(str(e)) from None
     if train_settings.crown_weight > 0 and gan_settings.resolution % 128:
@@ -419,7 +423,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
                 raise click.BadParameter(f"{e} (on --resume only --channel-base, --channel-max, --g-channel-min and "
-                                         "--g-channel-base may grow, and --d-joint-branch and --layout be added)") from None
+                                         "--g-channel-base may grow, and --d-joint-branch, --layout and --layout-gain be added)") from None
             grew = [f"{who}'s {r}x{r} {old(r)} -> {new(r)}" for who, old, new in
                     (("G", before.g_channels, state.gan.g_channels), ("D", before.channels, state.gan.channels))
                     for r in before.resolutions if old(r) != new(r)]
@@ -430,8 +434,10 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             if state.gan.layout_channels and not before.layout_channels:
                 click.echo(f"added G's layout inputs ({state.gan.layout_channels} maps from "
                            f"{state.gan.layout_resolution}x{state.gan.layout_resolution})", err=True)
-            if not grew and (state.gan.d_joint_branch, state.gan.layout_channels) == (before.d_joint_branch,
-                                                                                    before.layout_channels):
+            if state.gan.layout_gain and not before.layout_gain:
+                click.echo("added G's layout gain", err=True)
+            if not grew and (state.gan.d_joint_branch, state.gan.layout_channels, state.gan.layout_gain) == (
+                    before.d_joint_branch, before.layout_channels, before.layout_gain):
                 click.echo("no layer changes width", err=True)
             run_cfg = run_dir / "config.json"
             kept = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}

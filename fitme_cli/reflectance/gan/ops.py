@@ -12,7 +12,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-__all__ = ["bias_lrelu", "modulated_conv2d", "modulated_conv2d_extra", "conv_up2x", "conv_down2x", "upsample2x", "downsample2x"]
+__all__ = ["bias_lrelu", "modulated_conv2d", "modulated_conv2d_extra", "spatial_gain", "conv_up2x", "conv_down2x", "upsample2x", "downsample2x"]
 
 _LRELU_GAIN = math.sqrt(2.0)
 
@@ -67,6 +67,28 @@ def modulated_conv2d_extra(x: torch.Tensor, extra: torch.Tensor, weight: torch.T
         d = torch.rsqrt((weight.square().sum(dim=(2, 3))[None] * styles[:, None, :].square()).sum(-1) + 1e-8)  # (B, O)
         y = y * d.reshape(*d.shape, 1, 1).to(y.dtype)
     return y
+
+
+def spatial_gain(x: torch.Tensor, layout: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``x * (1 + g)`` with the gain map ``g[c] = sum_k weight[c, k] * layout[k]``: fixed maps (G's layout) scaling
+    each feature channel texel by texel, as SPADE's gamma does. Reference: ``_spatial_gain_ref``.
+
+    x: (B, C, H, W); layout: (1 or B, K, H, W); weight: (C, K). Returns (B, C, H, W) in x's dtype."""
+    if x.ndim != 4 or layout.ndim != 4 or layout.shape[0] not in (1, x.shape[0]) or layout.shape[2:] != x.shape[2:] \
+            or weight.shape != (x.shape[1], layout.shape[1]):
+        raise ValueError(f"spatial_gain: expected x (B, C, H, W), layout (1 or B, K, H, W), weight (C, K); got x "
+                         f"{tuple(x.shape)}, layout {tuple(layout.shape)}, weight {tuple(weight.shape)}")
+    g = F.conv2d(layout.to(x.dtype), weight.to(x.dtype)[:, :, None, None])
+    return x * (1 + g)
+
+
+def _spatial_gain_ref(x, layout, weight):
+    """Channel by channel, map by map."""
+    out = []
+    for c in range(x.shape[1]):
+        g = sum(weight[c, k] * layout[:, k] for k in range(layout.shape[1]))
+        out.append(x[:, c] * (1 + g))
+    return torch.stack(out, 1)
 
 
 def _modulated_conv2d_extra_ref(x, extra, weight, styles, demodulate=True):

@@ -10,7 +10,7 @@ over the input channels, which zero columns do not change. The same way D can ga
 (``GanSettings.d_joint_branch``): the new branch starts from its init and the last block reads its
 features through zero weights. And G can gain its layout inputs (``GanSettings.layout_channels``): each conv1 and
 toImage from ``layout_resolution`` up reads them through zero weights, appended after its features; the caller sets
-the new ``layout_image`` (``train.set_layout_image``).
+the new ``layout_image`` (``train.set_layout_image``), and its layout gain (``GanSettings.layout_gain``), which starts at zero.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from torch import nn
 
 from .networks import GanSettings
 
-__all__ = ["widen_module", "widen_state"]
+__all__ = ["widen_module", "widen_state", "carry_adam"]
 
 
 def _gain(module: nn.Module) -> float:
@@ -61,20 +61,57 @@ def widen_module(old: nn.Module, new: nn.Module) -> None:
                 t_new[: t_old.shape[0], t_old.shape[1] :] = 0  # old outputs ignore the new inputs
 
 
+def carry_adam(old_opt: torch.optim.Optimizer, old: nn.Module, new_opt: torch.optim.Optimizer, new: nn.Module) -> int:
+    """Copy Adam's state from ``old``'s parameters to ``new``'s of the same name (``new`` widened from ``old`` by
+    ``widen_module``). A tensor of the same shape takes its state as it was; a grown one takes the old entries in
+    place, rescaled as ``widen_module`` rescaled the weight, and in its new entries the second moment's mean over the
+    old ones, so that their first steps are as large as the old entries' steps (a zero there would make them ~10x
+    larger: Adam divides by its root). Parameters new to ``new`` start fresh. Returns how many parameters carried.
+
+    So a widened run goes on with the optimiser it had, as a plain resume does. (It is not what jolts a widened run:
+    with Adam carried, adding the layout gain at 346.68 kimg still took D's real logit from ~3 to 3.9 in 0.07 kimg;
+    docs/brdf_gan.md, "The layout as a gain".)"""
+    old_params, old_mods = dict(old.named_parameters()), dict(old.named_modules())
+    new_mods = dict(new.named_modules())
+    carried = 0
+    for name, p in new.named_parameters():
+        q = old_params.get(name)
+        st = old_opt.state.get(q) if q is not None else None
+        if not st:
+            continue
+        owner, _, leaf = name.rpartition(".")
+        scale = _gain(old_mods[owner]) / _gain(new_mods[owner]) if leaf == "weight" else 1.0
+        out = {}
+        for key, v in st.items():
+            if not torch.is_tensor(v) or v.shape == p.shape or key == "step":
+                out[key] = v.clone() if torch.is_tensor(v) else v
+                continue
+            # the stored weight grew by `scale`, so its gradient shrinks by it
+            grown = v / scale if key == "exp_avg" else v / scale**2
+            t = torch.full_like(p, float(grown.mean()) if key == "exp_avg_sq" else 0.0)
+            t[tuple(slice(0, n) for n in v.shape)] = grown
+            out[key] = t
+        new_opt.state[p] = out
+        carried += 1
+    return carried
+
+
 def widen_state(state, gan: GanSettings):
     """A TrainState whose G, G_ema and D have ``gan``'s (wider) channels, and D the joint branch if ``gan``
     asks for it, and which computes what ``state``'s did.
-    Counters, ADA and train settings carry over; both Adam states start fresh (their shapes changed)."""
+    Counters, ADA, train settings and Adam's state (``carry_adam``) carry over."""
     from .train import new_state
 
     grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch", "layout_channels",
-             "layout_resolution"}
+             "layout_resolution", "layout_gain"}
     fixed = {f.name for f in dataclasses.fields(GanSettings)} - grows
     changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
     if changed:
         raise ValueError(f"only the channels can grow on a trained run; {', '.join(changed)} would change")
     if state.gan.d_joint_branch and not gan.d_joint_branch:
         raise ValueError("D's joint branch cannot be removed from a run that has one (its trained weights would be lost)")
+    if state.gan.layout_gain and not gan.layout_gain:
+        raise ValueError("G's layout gain cannot be removed from a run that has it (its trained weights would be lost)")
     old_k = state.gan.layout_channels
     if old_k and (gan.layout_channels, gan.layout_resolution) != (old_k, state.gan.layout_resolution):
         raise ValueError(f"G's layout inputs cannot change once a run has them ({old_k} maps from "
@@ -92,6 +129,8 @@ def widen_state(state, gan: GanSettings):
     torch.set_rng_state(rng)  # ... then the resumed run goes on with its own random stream
     for name in ("G", "G_ema", "D"):
         widen_module(getattr(state, name), getattr(out, name))
+    carry_adam(state.opt_G, state.G, out.opt_G, out.G)
+    carry_adam(state.opt_D, state.D, out.opt_D, out.D)
     for name in ("step", "nimg", "ada_p", "ada_acc", "ada_n", "wall_time"):
         setattr(out, name, getattr(state, name))
     if state.D_patch is not None:  # the local D reads the maps, not the networks' channels: kept as it is
