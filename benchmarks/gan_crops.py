@@ -4,8 +4,8 @@ row. Writes one PNG.
 
     python benchmarks/gan_crops.py DATA_DIR CKPT... -o crops.png [--rows 3] [--seed 5]
 
-The crops are the bounding boxes of the data's layout masks (``data.layout_image``'s lips and brows channels > 0.5),
-grown by 6 texels at 256^2: the same texels for every map, so a soft edge or a halo shows against the data's.
+The crops are the bounding boxes of the data's layout masks (``data.layout_image``'s lips and brows channels above
+half their peak), grown by 6 texels at 256^2: the same texels for every map, so a soft edge or a halo shows against the data's.
 """
 
 from __future__ import annotations
@@ -82,7 +82,8 @@ def main() -> None:
     r = gan.resolution
     lay = layout_image(r)
     pad = max(1, round(6 * r / 256))
-    boxes = _boxes([lay[LAYOUT_CHANNELS.index(k)] > 0.5 for k in ("lips", "brows")], pad)
+    masks = [lay[LAYOUT_CHANNELS.index(k)] for k in ("lips", "brows")]
+    boxes = _boxes([m > 0.5 * m.max() for m in masks], pad)  # the layout scales the small masks by 10
     rows = []
     for title, maps in blocks:
         body = []

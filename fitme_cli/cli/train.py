@@ -62,6 +62,12 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
 _FIXED_ON_RESUME = ("batch", "r1_gamma", "seed")
 
 
+def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
+    """--layout-resolution means nothing to a G without layout inputs: say so rather than rebuild the run for it."""
+    if flags.get("layout_resolution") is not None and not layout_channels:
+        raise click.BadParameter("--layout-resolution is read only with --layout (G's layout inputs)")
+
+
 @click.command("train")
 @click.argument("data_dir", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory: checkpoint, metrics, sample grids.")
@@ -414,6 +420,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
             raise click.BadParameter(str(e)) from None
         # the architecture is the run's own, except that its channels may grow (gan/widen.py: the wider
         # networks start out computing what the trained ones did)
+        _check_layout_resolution(flags, cfg["gan"].get("layout_channels", state.gan.layout_channels))
         grown = {k: v for k, v in cfg["gan"].items() if getattr(state.gan, k) != v}
         if grown:
             from ..reflectance.gan.widen import widen_state
@@ -446,6 +453,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         gan_settings = state.gan
         click.echo(f"resuming at {state.nimg / 1000:.2f} kimg", err=True)
     else:
+        _check_layout_resolution(flags, gan_settings.layout_channels)
         if ckpt.exists():
             raise OutputNotWritable("the run directory has a checkpoint; pass --resume to continue it or choose another directory", run_dir)
         try:

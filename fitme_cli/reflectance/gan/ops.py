@@ -48,8 +48,8 @@ def modulated_conv2d(x: torch.Tensor, weight: torch.Tensor, styles: torch.Tensor
 def modulated_conv2d_extra(x: torch.Tensor, extra: torch.Tensor, weight: torch.Tensor, styles: torch.Tensor,
                            demodulate: bool = True) -> torch.Tensor:
     """``modulated_conv2d`` of ``cat([x, extra])`` (no upsampling) for inputs ``extra`` that are the same for every
-    sample (G's layout maps): two convolutions summed instead of one on a concatenated copy, so that the batch of
-    ``extra`` is never written out in full and the backward does not compute its gradient when it needs none.
+    sample (G's layout maps): two convolutions summed instead of one on a concatenated copy, so that ``x`` is not
+    copied into a concatenation and the backward does not compute ``extra``'s gradient when it needs none.
     Measured at 256^2, batch 4, 32 + 15 inputs, 2 threads, forward + backward: 0.27 s on the concatenation, 0.19 s
     split, 0.12 s without the 15 (2026-12-04). Reference: ``_modulated_conv2d_extra_ref``.
 
