@@ -1843,12 +1843,12 @@ def test_lip_ring_weight_pulls_the_rings(tmp_path):
 def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
     """The Nyquist measure is ``metrics.nyquist_log_ratio`` (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2)
     then ``metrics.corner_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded specular and the normals'
-    x and y, the same 8 over ``data.face_square``'s crop (the whole map at 16^2), then each of the 16's unbiased
-    variance over the batch; a batch of one is refused; a diagonal checkerboard raises both its ratios; one on the
+    x and y, the same 8 over ``data.face_square``'s crop (the whole map at 16^2), ``metrics.band_log_ratio`` of the
+    four over the map and over the crop, then each of the 32's unbiased variance over the batch; a batch of one is refused; a diagonal checkerboard raises both its ratios; one on the
     face's crop alone raises the face's ratios more than the whole map's; with the term G's measure moves toward a
     target above and one below."""
     from fitme_cli.reflectance.gan.data import face_square
-    from fitme_cli.reflectance.gan.metrics import corner_log_ratio, nyquist_log_ratio
+    from fitme_cli.reflectance.gan.metrics import band_log_ratio, corner_log_ratio, nyquist_log_ratio
     from fitme_cli.reflectance.gan.networks import decode_maps
     from fitme_cli.reflectance.gan.train import _nyquist
 
@@ -1861,11 +1861,11 @@ def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp
         row, col, side = face_square(r)
         face = maps[..., row:row + side, col:col + side]
         v = torch.cat([nyquist_log_ratio(maps, below), corner_log_ratio(maps), nyquist_log_ratio(face),
-                       corner_log_ratio(face)], 1)
+                       corner_log_ratio(face), band_log_ratio(maps).flatten(1), band_log_ratio(face).flatten(1)], 1)
         got = _nyquist(x, regions, TINY)
-        assert got.shape == (3, 32)
-        torch.testing.assert_close(got[:, :16], v)
-        torch.testing.assert_close(got[:, 16:].mean(0), v.var(0))
+        assert got.shape == (3, 64)
+        torch.testing.assert_close(got[:, :32], v)
+        torch.testing.assert_close(got[:, 32:].mean(0), v.var(0))
     smooth = torch.nn.functional.avg_pool2d(x, 3, 1, 1)  # 64^2: a face crop of 32^2 at rows 13-45, columns 16-48
     assert face_square(64) == (13, 16, 32) and face_square(16) == (0, 0, 16) and face_square(256) == (53, 64, 128)
     yy, xx = torch.meshgrid(torch.arange(64), torch.arange(64), indexing="ij")
@@ -1875,6 +1875,10 @@ def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp
     before, after = _nyquist(smooth, regions, TINY), _nyquist(rough, regions, TINY)
     assert (after[:, [2, 6, 10, 14]] > before[:, [2, 6, 10, 14]] + 1).all()
     assert ((after - before)[:, 14] > (after - before)[:, 6]).all()  # the face's corner rises more than the map's
+    # the top band up to Nyquist sees it too, over the map and the face (normals x: entry 5 of each crop's 8), the band
+    # below it less
+    assert (after[:, [21, 29]] > before[:, [21, 29]] + 1).all()
+    assert ((after - before)[:, [20, 28]] < (after - before)[:, [21, 29]]).all()
     with pytest.raises(ValueError, match="_nyquist needs a batch of at least 2 samples"):
         _nyquist(x[:1], regions, TINY)
     _check_shifted_pull("nyquist", lambda y, r: _nyquist(y, r, TINY), regions, _tiny_data(), tmp_path, 0.2)
@@ -3974,6 +3978,53 @@ def test_nyquist_log_ratio_known_values_gradients_and_bad_input():
         nyquist_log_ratio(torch.zeros(1, 16, 16))
 
 
+def test_band_log_ratio_known_values_reference_gradients_and_bad_input():
+    """White noise ~0 in every band; a wave at 0.48 cycle per texel (the 346.00 kimg normals' peak) raises the band
+    up to Nyquist and not the one below it, which a wave at 0.45 raises; per channel; a scale and an offset change
+    nothing; equal to a loop over the bins of numpy's FFT; float64 gradients; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import TOP_BANDS, band_log_ratio
+
+    g = torch.Generator().manual_seed(0)
+    white = torch.randn(16, 1, 64, 64, generator=g, dtype=torch.float64)
+    got = band_log_ratio(white)
+    assert got.shape == (16, 1, 2) and float(got.mean((0, 1)).abs().max()) < 0.15
+    torch.testing.assert_close(band_log_ratio(3 * white + 1), got)
+    xx = torch.arange(64.0, dtype=torch.float64)
+    near_nyquist = torch.cos(2 * math.pi * 0.48 * xx)[None, None, None, :].expand(16, 1, 64, 64)
+    below = torch.cos(2 * math.pi * 0.45 * xx)[None, None, :, None].expand(16, 1, 64, 64)
+    got = band_log_ratio(torch.cat([near_nyquist + 0.1 * white, below + 0.1 * white], 1))
+    assert (got[:, 0, 1] > 3).all() and (got[:, 0, 0] < got[:, 0, 1] - 2).all()  # 0.48: top band, not the one below
+    assert (got[:, 1, 0] > 3).all() and (got[:, 1, 1] < got[:, 1, 0] - 2).all()  # 0.45: the band below
+
+    x = torch.randn(2, 1, 32, 32, generator=g, dtype=torch.float64)
+    r = 32
+    win = np.hanning(r + 1)[:r]  # periodic Hann
+    freq = np.abs(np.fft.fftfreq(r))
+    ref = []
+    for m in x[:, 0].numpy():
+        f = np.abs(np.fft.fft2((m - m.mean()) * win[:, None] * win[None, :])) ** 2
+        bins = {}
+        for i in range(r):
+            for j in range(r):
+                rad = max(freq[i], freq[j])
+                for name, (lo, hi) in (("ref", (0.25, 0.375)), *enumerate(TOP_BANDS)):
+                    if lo <= rad and (rad < hi or hi == 0.5):
+                        bins.setdefault(name, []).append(f[i, j])
+        ref.append([np.log(np.mean(bins[b]) / np.mean(bins["ref"])) for b in range(len(TOP_BANDS))])
+    torch.testing.assert_close(band_log_ratio(x)[:, 0], torch.tensor(ref, dtype=torch.float64))
+    y = torch.randn(1, 1, 16, 16, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(band_log_ratio, (y,))
+    for bad in (torch.zeros(1, 1, 15, 15), torch.zeros(1, 1, 8, 8)):
+        with pytest.raises(ValueError, match=r"expected an even R >= 16"):
+            band_log_ratio(bad)
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps"):
+        band_log_ratio(torch.zeros(1, 16, 16))
+    with pytest.raises(ValueError, match=r"expected bands 0 <= lo < hi <= 1/2, got \(0.4, 0.3\)"):
+        band_log_ratio(white, bands=((0.4, 0.3),))
+    with pytest.raises(ValueError, match=r"the band \(0.47, 0.48\) holds no frequency at R 16"):
+        band_log_ratio(y.detach(), bands=((0.47, 0.48),))
+
+
 def test_corner_log_ratio_known_values_reference_gradients_and_bad_input():
     """White noise ~0; a diagonal checkerboard over faint noise far above, while a checkerboard of columns (energy at
     the u Nyquist, v 0: outside the block) stays ~0 though ``nyquist_log_ratio`` sees both; per channel; a scale and an
@@ -4582,6 +4633,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "eye_near_bands_by_half", "albedo_specular_link_by_region",
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
                       "beard_band_rms_bearded", "nyquist_log_ratio", "corner_log_ratio", "face_texel_checkerboard",
+                      "spectral_top_log_ratio",
                       "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
@@ -4704,6 +4756,13 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
         list(v) == ["data", "gan"] and all(q[1] <= q[2] <= q[3] and q[1] <= q[0] <= q[3] for q in v.values())
         for v in r.values()) for r in face.values())
     assert face["corner_log_ratio"] != corner  # a crop, not the whole map again
+    top = m["spectral_top_log_ratio"]  # per crop, band and map, as the corner row
+    assert list(top) == ["whole_map", "face"] and all(list(c) == ["0.4375-0.4688_cycle", "0.4688-0.5_cycle"]
+                                                      for c in top.values())
+    assert all(list(b) == ["albedo", "specular", "normal_x", "normal_y"] and all(
+        list(v) == ["data", "gan"] and all(q[1] <= q[2] <= q[3] and q[1] <= q[0] <= q[3] for q in v.values())
+        for v in b.values()) for c in top.values() for b in c.values())
+    assert top["whole_map"] != top["face"]
     beards = m["beard_band_rms_bearded"]  # per side: how many samples are bearded, their mean band RMS (or None)
     assert list(beards) == ["data", "gan"] and all(list(v) == ["samples", "fine_mid_coarse"] for v in beards.values())
     assert all((v["fine_mid_coarse"] is None) == (v["samples"] == 0) for v in beards.values())

@@ -49,7 +49,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
            "region_edge_sharpness", "region_slope_link", "row_profile", "hairline_edge_coherence",
-           "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "region_band_skew", "region_band_neighbour",
+           "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "TOP_BANDS", "band_log_ratio", "region_band_skew", "region_band_neighbour",
            "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
@@ -472,6 +472,41 @@ def corner_log_ratio(x: torch.Tensor, half_width: int | None = None) -> torch.Te
     near[h - q - k:h - q + k + 1, h - q - k:h - q + k + 1] = True
     corner, rest = block[..., near].mean(-1), block[..., ~near].mean(-1)  # a mask, not a difference of sums
     return (corner.clamp_min(1e-30) / rest.clamp_min(1e-30)).log()
+
+
+# ``band_log_ratio``'s default bands, cycles per texel (Chebyshev radius): just below Nyquist, and up to it
+TOP_BANDS = ((7 / 16, 15 / 32), (15 / 32, 1 / 2))
+
+
+def band_log_ratio(x: torch.Tensor, bands: tuple[tuple[float, float], ...] = TOP_BANDS,
+                   reference: tuple[float, float] = (1 / 4, 3 / 8)) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units, R even and >= 16 -> (N, C, len(bands)): per sample, channel and band, the log
+    of the mean FFT energy of the frequencies whose Chebyshev radius max(|u|, |v|) (cycles per texel) lies in the band
+    [lo, hi) (a band ending at 1/2 includes Nyquist) over the mean energy of the ``reference`` band, the map
+    Hann-windowed. Each band must hold at least one frequency.
+    ``nyquist_log_ratio`` compares Nyquist with the rows just below it, and a peak there lowers it: G_ema's normals at
+    346.00 kimg had a peak at 0.47-0.49 cycles per texel, ~300x the data's power over the face, which the Nyquist
+    term had pushed in from Nyquist (docs/brdf_gan.md, "The layout as a gain"). Against a reference band where G and
+    the data agree (1/4-3/8 cycle), every part of the spectrum's top shows."""
+    if x.ndim != 4 or not x.is_floating_point() or x.shape[-1] != x.shape[-2]:
+        raise ValueError(f"expected float (N, C, R, R) maps, got {tuple(x.shape)} {x.dtype}")
+    r = x.shape[-1]
+    if r % 2 or r < 16:
+        raise ValueError(f"expected an even R >= 16, got {r}")
+    freq = torch.fft.fftfreq(r, device=x.device).abs()
+    radius = torch.maximum(freq[:, None], freq[None, :])  # unshifted, as the FFT's bins; Nyquist is -1/2: |.| = 1/2
+    f = _windowed_power(x)
+
+    def mean_in(lo: float, hi: float) -> torch.Tensor:
+        if not 0 <= lo < hi <= 0.5:
+            raise ValueError(f"expected bands 0 <= lo < hi <= 1/2, got ({lo}, {hi})")
+        inside = (radius >= lo) & ((radius < hi) | (hi == 0.5))
+        if not inside.any():
+            raise ValueError(f"the band ({lo}, {hi}) holds no frequency at R {r}")
+        return f[..., inside].mean(-1)
+
+    ref = mean_in(*reference).clamp_min(1e-30)
+    return torch.stack([(mean_in(lo, hi).clamp_min(1e-30) / ref).log() for lo, hi in bands], -1)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

@@ -24,7 +24,7 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence, texel_lattice, LATTICE_PARTS,
                       region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
                       ring_profile, row_profile, region_band_correlation, hairline_edge_coherence,
-                      dark_speck_depth, nyquist_log_ratio, corner_log_ratio)
+                      dark_speck_depth, nyquist_log_ratio, corner_log_ratio, band_log_ratio, TOP_BANDS)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _eye_flat, _lip_ring, _lip_ring_counts, _mouth,
@@ -126,6 +126,9 @@ class _Side:
     nyquist: torch.Tensor
     corner: torch.Tensor  # (N, 4) per sample ``metrics.corner_log_ratio`` of the same four maps
     face_checker: torch.Tensor  # (N, 8) the two ratios (4 each) over ``data.face_square``'s crop
+    # (N, 16) per sample ``metrics.band_log_ratio`` of the same four maps, two bands each (map by map), over the whole
+    # map, then over the face's crop
+    top_bands: torch.Tensor
     # (2 * n, 3) mean over samples, log linear albedo: ``metrics.ring_profile`` over each half of
     # ``data.eye_ring_halves`` (the near bands above the openings, then below; n in all), then its absolute value
     eye_halves: torch.Tensor
@@ -150,7 +153,7 @@ class _Side:
 # the ``_Side`` fields ``_measure`` keeps per sample
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows", "mouth_rows",
                "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
-               "nyquist", "corner", "face_checker", "eye_flat", "brow_profile", "lip_ring")
+               "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -332,6 +335,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "nyquist": nyquist_log_ratio(grain_maps),
             "corner": corner_log_ratio(grain_maps),
             "face_checker": torch.cat([nyquist_log_ratio(face_maps), corner_log_ratio(face_maps)], 1),
+            "top_bands": torch.cat([band_log_ratio(grain_maps).flatten(1), band_log_ratio(face_maps).flatten(1)], 1),
             "hairline_specks": torch.stack([dark_speck_depth(x[:, :3], zones == z, *hairline[1:]) for z in (1, 2)], 1),
             "lattice": texel_lattice(net),
             "specular_spectra": region_spectrum(x[:, 3], regions),
@@ -614,6 +618,13 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                                    for side, m in (("data", real), ("gan", gan))}
                                             for c, name in enumerate(("albedo", "specular", "normal_x", "normal_y"))}
                                     for r, ratio in enumerate(("nyquist_log_ratio", "corner_log_ratio"))},
+        # the top of each map's spectrum (metrics.band_log_ratio against 1/4-3/8 cycle; the 346.00 kimg normals' peak at
+        # 0.47-0.49 cycle), over the whole map and the face's crop: per band and map, the mean and 10 / 50 / 90 % quantiles
+        "spectral_top_log_ratio": {crop: {f"{lo:.4g}-{hi:.4g}_cycle": {
+            name: {side: _mean_quantiles(m.top_bands[:, 8 * k + 2 * c + b], (0.1, 0.5, 0.9))
+                   for side, m in (("data", real), ("gan", gan))}
+            for c, name in enumerate(("albedo", "specular", "normal_x", "normal_y"))}
+            for b, (lo, hi) in enumerate(TOP_BANDS)} for k, crop in enumerate(("whole_map", "face"))},
         # dark specks along the hairline (the 308.28 kimg judge N): per sample, how far the reach's texels fall below the
         # darker of the skin's and the hair's 1 % quantile (``metrics.dark_speck_depth``, log luminance, x 1000), over
         # the hairline band and over the scalp behind it: the mean over samples and the 90 % quantile

@@ -33,8 +33,8 @@ from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussia
                       region_band_energy, region_coherence, region_edge_sharpness, region_labels, region_moments, region_relief,
                       region_slope_link, region_specular_link, region_spectrum, region_texel_grain, region_texel_tails,
                       ring_profile, row_profile, soft_hair_share, soft_hairline_share, texel_lattice,
-                      hairline_edge_coherence, dark_speck_depth, nyquist_log_ratio, corner_log_ratio, region_band_skew,
-                      region_band_neighbour, region_band_statistics, region_quantiles, local_range)
+                      hairline_edge_coherence, dark_speck_depth, nyquist_log_ratio, corner_log_ratio, band_log_ratio,
+                      region_band_skew, region_band_neighbour, region_band_statistics, region_quantiles, local_range)
 from .networks import (Discriminator, GanImages, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_maps,
                        decode_specular)
 from ...ops.srgb import linear_to_srgb
@@ -364,6 +364,9 @@ class TrainSettings:
     # 343.76 kimg a judge found the specular's diagonal checkerboard; at 343.17 G_ema's normals x read -3.56 there
     # against the data's -5.01. And both over the face's crop (``data.face_square``): at 346.00 the normals' x read -1.47 on the
     # Nyquist row and column there against the data's -4.12, hidden in the whole map by the scalp, a judge's measure.
+    # Since 2026-12-05 also the top of each map's spectrum against 1/4-3/8 cycle (``metrics.band_log_ratio``), over the
+    # whole map and the face: the Nyquist ratio's reference, the rows just below Nyquist, held G's peak at 0.47-0.49
+    # cycle (normals, ~300x the data's power on the face at 346.00) and rewarded it.
     # Drift-style (absolute, log units). 0: off
     nyquist_weight: float = 0.0
     nyquist_beta: float = 0.99  # per-step decay of the running ratios
@@ -1523,15 +1526,17 @@ def _normal_symmetry(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
 
 
 def _nyquist(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
-    """(B, 7, R, R) network space, B >= 2 -> (B, 32): per sample, ``metrics.nyquist_log_ratio`` (4) then
+    """(B, 7, R, R) network space, B >= 2 -> (B, 64): per sample, ``metrics.nyquist_log_ratio`` (4) then
     ``metrics.corner_log_ratio`` (4, the diagonal checkerboard) of the linear albedo's luminance, the linear specular
-    and the normals' x and y, the same 8 over ``data.face_square``'s crop, then each of the 16's squared deviation from
-    the batch's mean times B / (B - 1) (``_batch_spread``). ``regions`` is not used: the ratios are the whole map's and
-    the face crop's. ``s``: the specular's decoding."""
+    and the normals' x and y, the same 8 over ``data.face_square``'s crop, then ``metrics.band_log_ratio`` of the four
+    maps (two bands each, map by map: 8) over the whole map and over the crop, then each of the 32's squared deviation
+    from the batch's mean times B / (B - 1) (``_batch_spread``). ``regions`` is not used: the ratios are the whole
+    map's and the face crop's. ``s``: the specular's decoding."""
     maps = torch.cat([decode_albedo(x[:, :3]).mean(1, keepdim=True), decode_specular(x[:, 3:4], s), x[:, 4:6]], 1)
     row, col, side = face_square(x.shape[-1])
     face = maps[..., row:row + side, col:col + side]
-    v = torch.cat([nyquist_log_ratio(maps), corner_log_ratio(maps), nyquist_log_ratio(face), corner_log_ratio(face)], 1)
+    v = torch.cat([nyquist_log_ratio(maps), corner_log_ratio(maps), nyquist_log_ratio(face), corner_log_ratio(face),
+                   band_log_ratio(maps).flatten(1), band_log_ratio(face).flatten(1)], 1)
     return torch.cat([v, _batch_spread(v, "_nyquist")], 1)
 
 
