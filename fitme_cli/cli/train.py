@@ -230,9 +230,10 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
                    "(1-8 texels) with its normals' x and y to the data's ~0: against bumps embossed into the albedo "
                    "(not in the paper; may change on --resume). [0]")
 @click.option("--nyquist-weight", type=click.FloatRange(min=0),
-              help="Pull each map's energy on the Nyquist row and column over the octave below (albedo, specular, "
-                   "normals x and y), and its spread between samples, to the data's: against a texel checkerboard "
-                   "(not in the paper; may change on --resume). [0]")
+              help="Pull each map's energy on the Nyquist row and column over the octave below, around the diagonal "
+                   "corner, and in the spectrum's top two bands over 1/4-3/8 cycle (albedo, specular, normals x and "
+                   "y; over the whole map and the face), and their spreads between samples, to the data's: against a "
+                   "texel checkerboard and a peak below Nyquist (not in the paper; may change on --resume). [0]")
 @click.option("--normal-symmetry-weight", type=click.FloatRange(min=0),
               help="Pull each region's skewness of G's normals' x and y and their correlation, in the two finest "
                    "bands, to the data's ~0: against bumps tilted one way more than the other (not in the paper; may "
