@@ -1840,6 +1840,73 @@ def test_lip_ring_weight_pulls_the_rings(tmp_path):
     _check_spread_pull("lip_ring", lambda x, regions: _lip_ring(x, regions, TINY), _two_regions(), tmp_path, 0.5)
 
 
+def _grain_evenness_loop(x: np.ndarray, regions: np.ndarray, block: int) -> np.ndarray:
+    """Reference for ``metrics.region_grain_evenness``: tile by tile and region by region, float64."""
+    n, c, r, _ = x.shape
+    labels = sorted(int(v) for v in np.unique(regions) if v != 255)
+    out = np.zeros((n, len(labels), c))
+    padded = np.pad(x, ((0, 0), (0, 0), (1, 1), (1, 1)), mode="edge")
+    grain = x - sum(padded[:, :, i:i + r, j:j + r] for i in range(3) for j in range(3)) / 9
+    for k, lab in enumerate(labels):
+        tiles = [(i, j) for i in range(0, r, block) for j in range(0, r, block)
+                 if (regions[i:i + block, j:j + block] == lab).all()]
+        if len(tiles) < 2:
+            continue
+        for b in range(n):
+            for ch in range(c):
+                rms = np.array([np.sqrt((grain[b, ch, i:i + block, j:j + block] ** 2).mean()) for i, j in tiles])
+                out[b, k, ch] = rms.std() / rms.mean()
+    return out
+
+
+def test_region_grain_evenness_against_a_loop_known_values_gradients_and_bad_input():
+    """The coefficient of variation of the grain's RMS over the tiles wholly in each region equals a loop's; an even
+    grain gives 0, a grain twice as strong on half the tiles more; scale and offset do not change it; a region of
+    fewer than 2 tiles gives 0; float64 gradcheck; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import region_grain_evenness
+
+    regions = _two_regions()  # 16^2: 12 tiles of 2^2 in each region, 6 of 4^2 in neither
+    x = torch.randn(3, 2, 16, 16, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    got = region_grain_evenness(x, regions, 2)
+    assert got.shape == (3, 2, 2) and got.dtype == torch.float64 and bool((got > 0.1).all())
+    np.testing.assert_allclose(got.numpy(), _grain_evenness_loop(x.numpy(), regions.numpy(), 2), rtol=1e-10)
+    torch.testing.assert_close(region_grain_evenness(3 * x + 1, regions, 2), got)
+    assert bool((region_grain_evenness(x.float(), regions, 4) == 0).all())  # no 4^2 tile lies in one region
+    checker = (torch.arange(16)[:, None] + torch.arange(16)).remainder(2).to(torch.float64).expand(1, 1, 16, 16)
+    assert float(region_grain_evenness(checker, regions, 2).abs().max()) < 1e-12  # the same grain in every tile
+    patchy = checker.clone()
+    patchy[..., 8:, :] *= 2  # twice the grain in the lower half
+    even = region_grain_evenness(patchy, regions, 2)
+    assert bool((even > 0.2).all())
+    np.testing.assert_allclose(even.numpy(), _grain_evenness_loop(patchy.numpy(), regions.numpy(), 2), rtol=1e-10)
+    small = torch.randn(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: region_grain_evenness(t, _two_regions(8), 2), (small,), eps=1e-6, atol=1e-5)
+    for bad, reg, block in ((x.long(), regions, 2), (x, regions[:8], 2), (x, regions, 3), (x, regions, 1)):
+        with pytest.raises(ValueError, match="expected float|block must"):
+            region_grain_evenness(bad, reg, block)
+
+
+def test_grain_evenness_measure_and_pull(tmp_path):
+    """The grain-evenness measure is ``metrics.region_grain_evenness`` of the linear albedo's mean of r, g, b and the
+    linear specular, in tiles of R / 32 (8 at 256^2, at least 2), then its squares; blind to the normals; with the term
+    G's evenness ends nearer a target one spread above and one below than without it; refusals as every term's."""
+    from fitme_cli.reflectance.gan.metrics import region_grain_evenness
+    from fitme_cli.reflectance.gan.train import _evenness_block, _grain_evenness, _luminance_and_specular
+
+    assert (_evenness_block(256), _evenness_block(64), _evenness_block(16)) == (8, 2, 2)
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(1)).clamp(-1, 1)
+    v = region_grain_evenness(_luminance_and_specular(x, TINY), regions, 2).flatten(1)
+    got = _grain_evenness(x, regions, TINY)
+    assert got.shape == (4, 8)
+    torch.testing.assert_close(got, torch.cat([v, v.square()], 1))
+    other = x.clone()
+    other[:, 4:] = 0
+    torch.testing.assert_close(_grain_evenness(other, regions, TINY), got)
+    _check_spread_pull("grain_evenness", lambda x, regions: _grain_evenness(x, regions, TINY), regions, tmp_path, 0.5,
+                       beta=0.5)
+
+
 def test_nyquist_measure_is_each_maps_ratio_and_its_batch_variance_and_pulls(tmp_path):
     """The Nyquist measure is ``metrics.nyquist_log_ratio`` (the octave below cut to rows 2-6 at 16^2, 2-8 from 32^2)
     then ``metrics.corner_log_ratio`` of the decoded albedo's mean of r, g, b, the decoded specular and the normals'
@@ -4389,7 +4456,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4463,6 +4530,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.brow_profile_weight == 0.5 and lines[-1]["brow_profile_gap"] > 0
     assert "brow_profile_gap" not in lines[0]
     assert state.train.lip_ring_weight == 0.5 and lines[-1]["lip_ring_gap"] > 0 and "lip_ring_gap" not in lines[0]
+    assert state.train.grain_evenness_weight == 0.5 and lines[-1]["grain_evenness_gap"] > 0
+    assert "grain_evenness_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4637,7 +4706,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
-                      "brow_profile", "lip_ring_log_luminance"}
+                      "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -4803,6 +4872,11 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert list(lip) == ["data", "gan"] and all(list(v) == ["above", "below"] for v in lip.values())
     assert all(len(h["mean"]) == len(h["mean_abs"]) >= 2 and all(a >= abs(b) for a, b in zip(h["mean_abs"], h["mean"]))
                for v in lip.values() for h in v.values()), lip
+    even = m["grain_evenness_by_region"]  # the regions with 2 or more tiles (2^2 at 64^2): per map and side, q10/50/90
+    assert even and set(even) <= set(coh) and all(list(v) == ["albedo", "specular"] for v in even.values())
+    assert all(list(q) == ["data", "gan"] and all(0 <= a[0] <= a[1] <= a[2] for a in q.values())
+               for v in even.values() for q in v.values()), even
+    assert all(v["albedo"]["data"][1] > 0 for v in even.values()), even  # the data's grain varies from tile to tile
     lattice = m["texel_lattice"]  # per channel and part; the data's parities are near 1 (its maps are smooth at 64^2)
     assert list(lattice) == ["albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"]
     assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())

@@ -46,7 +46,7 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
            "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
-           "log_chroma", "region_texel_grain", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
+           "log_chroma", "region_texel_grain", "region_grain_evenness", "LATTICE_PARTS", "texel_lattice", "region_band_correlation",
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
            "region_edge_sharpness", "region_slope_link", "row_profile", "hairline_edge_coherence",
            "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "TOP_BANDS", "band_log_ratio", "region_band_skew", "region_band_neighbour",
@@ -169,6 +169,38 @@ def region_texel_grain(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
                          f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
     lap = _laplacian(x, "replicate")
     return (lap.abs().flatten(2) @ _region_weights(regions, x).T).transpose(1, 2)
+
+
+def region_grain_evenness(x: torch.Tensor, regions: torch.Tensor, block: int = 8) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, C) same dtype, >= 0: per
+    sample, region of ``region_labels`` and channel, how unevenly the grain is spread: the coefficient of variation
+    (std / mean, over tiles) of the grain's RMS in the ``block`` x ``block`` tiles that lie wholly in the region, the
+    grain being x minus its 3x3 mean (edges replicated). 0 for a region with fewer than 2 such tiles, or no grain.
+    Invariant to a channel's scale and offset.
+
+    The 354.76 kimg judge Q's tell: G's grain over the neck comes in patches where the data's is even (on float maps,
+    the albedo's green over rows 196-254, columns 40-216 at 256^2, 8^2 tiles, q10 / q50 / q90: data 0.11 / 0.14 /
+    0.34, G 0.21 / 0.26 / 0.32; docs/brdf_gan.md). Differentiable where the tiles' grain is not all zero."""
+    if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
+        raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
+                         f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    r = x.shape[-1]
+    if block < 2 or r % block:
+        raise ValueError(f"block must be at least 2 and divide the maps' side {r}, got {block}")
+    grain = x - F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, 1)
+    energy = F.avg_pool2d(grain.square(), block).flatten(2)  # (N, C, T)
+    flat = energy <= 0  # the root's gradient is infinite at 0: taken of a stand-in 1 there
+    rms = torch.where(flat, torch.ones_like(energy), energy).sqrt() * ~flat
+    t = r // block
+    tiles = regions.view(t, block, t, block).permute(0, 2, 1, 3).reshape(t * t, block * block)
+    pure = (tiles == tiles[:, :1]).all(1)
+    w = torch.stack([(pure & (tiles[:, 0] == lab)).to(x) for lab in region_labels(regions)])  # (k, T)
+    n = w.sum(1)
+    mean = rms @ w.T / n.clamp_min(1)
+    var = (rms.square() @ w.T / n.clamp_min(1) - mean.square()).clamp_min(0)
+    ok = (n >= 2) & (mean > 0) & (var > 0)
+    cv = torch.where(ok, var, torch.ones_like(var)).sqrt() / torch.where(ok, mean, torch.ones_like(mean)) * ok
+    return cv.transpose(1, 2)
 
 
 def region_texel_tails(x: torch.Tensor, regions: torch.Tensor, k: float = 3.0, soft: float = 0.25) -> torch.Tensor:
