@@ -28,7 +28,8 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_grain_evenness)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring, _lip_ring_counts, _mouth,
+from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring,
+                    _lip_ring_counts, _mouth,
                     _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour, copy_generator, load_checkpoint,
                     sheet_ranges)
 
