@@ -2280,18 +2280,25 @@ def test_specular_link_weight_moves_the_fakes_link_and_is_blind_to_the_albedo(tm
     _check_shifted_pull("specular_link", lambda y, r: _specular_link(y, r, TINY), regions, _tiny_data(), tmp_path, 0.15)
 
 
-def _slope_link_reference(spec: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
-    """The slow reference of ``region_slope_link``: each texel's slopes from its clamped neighbours, then numpy's
-    correlation per sample, region and axis (0 for a flat region)."""
+def _slope_link_reference(spec: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor,
+                          kernel: str = "central") -> torch.Tensor:
+    """The slow reference of ``region_slope_link``: each texel's slopes from its clamped neighbours (with "sobel",
+    weighted 1, 2, 1 across the slope's axis), then numpy's correlation per sample, region and axis (0 for a flat
+    region)."""
     from fitme_cli.reflectance.gan.metrics import region_labels
 
     n, _, r, _ = spec.shape
     s = spec[:, 0].double().numpy()
     du, dv = np.zeros_like(s), np.zeros_like(s)
+    across = ((-1, 0.25), (0, 0.5), (1, 0.25)) if kernel == "sobel" else ((0, 1.0),)
+
+    def at(i, j):
+        return s[:, min(max(i, 0), r - 1), min(max(j, 0), r - 1)]
+
     for i in range(r):
         for j in range(r):
-            du[:, i, j] = (s[:, i, min(j + 1, r - 1)] - s[:, i, max(j - 1, 0)]) / 2
-            dv[:, i, j] = (s[:, max(i - 1, 0), j] - s[:, min(i + 1, r - 1), j]) / 2  # v up, rows down
+            du[:, i, j] = sum(w * (at(i + o, j + 1) - at(i + o, j - 1)) / 2 for o, w in across)
+            dv[:, i, j] = sum(w * (at(i - 1, j + o) - at(i + 1, j + o)) / 2 for o, w in across)  # v up, rows down
     out = np.zeros((n, len(region_labels(regions)), 2))
     for k, lab in enumerate(region_labels(regions)):
         m = (regions == lab).numpy()
@@ -2331,6 +2338,95 @@ def test_region_slope_link_matches_reference_known_values_gradients_and_bad_inpu
         with pytest.raises(ValueError, match=r"region_slope_link: expected float \(N, 1, R, R\) specular, \(N, 3, R, R\) "
                                              r"normals and \(R, R\) uint8 regions matching them, got"):
             region_slope_link(bad_s, bad_n, bad_r)
+
+
+def test_region_slope_link_sobel_matches_reference_is_tight_on_sobel_normals_and_refuses_a_kernel():
+    """The Sobel kernel against the loop reference; normals made from a height by a 3x3 Sobel (as ``fitme dataset``
+    makes them) correlate with the height's Sobel slopes at < -0.99, tighter than with its central slopes; float64
+    gradients; an unknown kernel is refused."""
+    import cv2
+    from fitme_cli.reflectance.gan.metrics import region_slope_link
+
+    r = 32
+    regions = _two_regions(r)
+    g = torch.Generator().manual_seed(0)
+    h = torch.rand(4, 1, r, r, generator=g)  # a rough height: texel-scale, where the kernels differ most
+    n = torch.zeros(4, 3, r, r)
+    for b in range(4):  # the data's recipe: Sobel slopes, v up, small so the normalisation hardly bends them
+        gx = cv2.Sobel(h[b, 0].numpy(), cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE) * 0.1
+        gy = cv2.Sobel(h[b, 0].numpy(), cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE) * 0.1
+        v = torch.stack([-torch.from_numpy(gx), torch.from_numpy(gy), torch.ones(r, r)])
+        n[b] = v / v.norm(dim=0)
+    noisy = h + 0.3 * torch.rand(4, 1, r, r, generator=g)
+    torch.testing.assert_close(region_slope_link(noisy, n, regions, kernel="sobel").double(),
+                               _slope_link_reference(noisy, n, regions, "sobel"), atol=1e-5, rtol=1e-4)
+    sobel, central = region_slope_link(h, n, regions, kernel="sobel"), region_slope_link(h, n, regions)
+    assert sobel.shape == (4, 2, 2) and float(sobel.max()) < -0.99, sobel
+    assert bool((sobel < central - 0.1).all()), (sobel, central)  # central: -0.79 to -0.85
+    s64 = torch.rand(2, 1, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(6), requires_grad=True)
+    n64 = torch.randn(2, 3, r, r, dtype=torch.float64, generator=torch.Generator().manual_seed(7), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda s, m: region_slope_link(s, m, regions, kernel="sobel"), (s64, n64))
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        region_slope_link(h, n, regions, kernel="scharr")
+
+
+def test_filter_fit_r2_against_a_full_least_squares_known_values_and_bad_input():
+    """Per sample and channel, the share of y that a least-squares filter of x's neighbourhood explains equals a full
+    least-squares solve's with a constant; y a 5x5 filter of x gives 1 (at size 5 and 7, not at 3), noise ~size^2 /
+    texels, a flat y or a flat x 0; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import filter_fit_r2
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 24, 24, generator=g)
+    kernel = torch.randn(1, 1, 5, 5, generator=g)
+    y = torch.nn.functional.conv2d(torch.nn.functional.pad(x[:, None], (2, 2, 2, 2), mode="replicate"), kernel)
+    noise = torch.randn(3, 1, 24, 24, generator=g)
+    mixed = y + 2 * noise * y.std()
+    mask = torch.zeros(24, 24, dtype=torch.bool)
+    mask[3:21, 5:23] = True
+    got = filter_fit_r2(x, torch.cat([y, noise, mixed, torch.full_like(y, 2.0)], 1), mask, 5)
+    assert got.shape == (3, 4) and got.dtype == torch.float64
+    np.testing.assert_allclose(got[:, 0].numpy(), 1.0, atol=1e-9)
+    assert float(got[:, 1].max()) < 0.2 and 0.1 < float(got[:, 2].min()) < float(got[:, 2].max()) < 0.4
+    assert bool((got[:, 3] == 0).all())
+    for i in range(3):  # the reference: lstsq over every masked texel, with a constant column
+        taps = torch.nn.functional.unfold(torch.nn.functional.pad(x[i, None, None].double(), (2, 2, 2, 2),
+                                                                  mode="replicate"), 5)[0][:, mask.flatten()]
+        design = torch.cat([taps.T, torch.ones(taps.shape[1], 1, dtype=torch.float64)], 1)
+        target = mixed[i, 0].double()[mask]
+        fit = design @ torch.linalg.lstsq(design, target[:, None]).solution[:, 0]
+        want = 1 - (target - fit).square().sum() / (target - target.mean()).square().sum()
+        assert float(got[i, 2]) == pytest.approx(float(want), abs=1e-9)
+    assert float(filter_fit_r2(x, y, mask, 7).min()) > 1 - 1e-9 and float(filter_fit_r2(x, y, mask, 3).max()) < 0.99
+    assert bool((filter_fit_r2(torch.ones(3, 24, 24), y, mask, 5) == 0).all())
+    for bad_x, bad_y, bad_m, size in ((x[0], y, mask, 5), (x, y[:, 0], mask, 5), (x.long(), y, mask, 5),
+                                      (x, y, mask.float(), 5), (x, y, mask[1:], 5)):
+        with pytest.raises(ValueError, match=r"filter_fit_r2: expected float \(N, R, R\) x"):
+            filter_fit_r2(bad_x, bad_y, bad_m, size)
+    with pytest.raises(ValueError, match="size must be odd"):
+        filter_fit_r2(x, y, mask, 4)
+    with pytest.raises(ValueError, match="must hold more than"):
+        filter_fit_r2(x, y, mask & (torch.arange(24)[:, None] < 4), 7)
+
+
+def test_specular_sobel_measure_and_pull(tmp_path):
+    """The specular-Sobel measure is ``region_slope_link`` (kernel "sobel") of the decoded specular and the normals,
+    then its squares; blind to the albedo; with the term G's link ends nearer a target one spread above and one below
+    than without it; refusals as every term's."""
+    from fitme_cli.reflectance.gan.metrics import region_slope_link
+    from fitme_cli.reflectance.gan.networks import decode_maps
+    from fitme_cli.reflectance.gan.train import _specular_sobel
+
+    regions = _two_regions()
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    v = region_slope_link(decode_maps(GanImages.split(x), TINY).specular, x[:, 4:7], regions, kernel="sobel").flatten(1)
+    got = _specular_sobel(x, regions, TINY)
+    assert got.shape == (3, 8)
+    torch.testing.assert_close(got, torch.cat([v, v.square()], 1))
+    other = x.clone()
+    other[:, :3] = torch.randn(3, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(_specular_sobel(other, regions, TINY), got)
+    _check_spread_pull("specular_sobel", lambda y, r: _specular_sobel(y, r, TINY), regions, tmp_path, 0.5, beta=0.5)
 
 
 def test_specular_slope_weight_moves_the_fakes_slope_and_is_blind_to_the_albedo(tmp_path):
@@ -4456,7 +4552,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4532,6 +4628,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.lip_ring_weight == 0.5 and lines[-1]["lip_ring_gap"] > 0 and "lip_ring_gap" not in lines[0]
     assert state.train.grain_evenness_weight == 0.5 and lines[-1]["grain_evenness_gap"] > 0
     assert "grain_evenness_gap" not in lines[0]
+    assert state.train.specular_sobel_weight == 0.5 and lines[-1]["specular_sobel_gap"] > 0
+    assert "specular_sobel_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4706,7 +4804,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
-                      "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region"}
+                      "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region",
+                      "specular_sobel_by_region", "filter_fit_r2"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -4877,6 +4976,16 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert all(list(q) == ["data", "gan"] and all(0 <= a[0] <= a[1] <= a[2] for a in q.values())
                for v in even.values() for q in v.values()), even
     assert all(v["albedo"]["data"][1] > 0 for v in even.values()), even  # the data's grain varies from tile to tile
+    sobel = m["specular_sobel_by_region"]  # per region, axis and side: q10/50/90 of the Sobel link, in [-1, 1]
+    assert set(sobel) == set(slope) and all(list(v) == ["u", "v"] for v in sobel.values())
+    assert all(list(q) == ["data", "gan"] and all(-1 <= a[0] <= a[1] <= a[2] <= 1 for a in q.values())
+               for v in sobel.values() for q in v.values()), sobel
+    assert sobel["scalp"]["u"]["data"][1] < -0.5, sobel["scalp"]  # the data's strands: its normals follow the specular
+    fit = m["filter_fit_r2"]  # judge P's: per region and normal axis, q10/50/90 of the filter's R^2 in [0, 1]
+    assert list(fit) == ["scalp", "neck"] and all(list(v) == ["normal_x", "normal_y"] for v in fit.values())
+    assert all(list(q) == ["data", "gan"] and all(0 <= a[0] <= a[1] <= a[2] <= 1 for a in q.values())
+               for v in fit.values() for q in v.values()), fit
+    assert fit["scalp"]["normal_x"]["data"][1] > fit["scalp"]["normal_x"]["gan"][1], fit  # an untrained G's are apart
     lattice = m["texel_lattice"]  # per channel and part; the data's parities are near 1 (its maps are smooth at 64^2)
     assert list(lattice) == ["albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"]
     assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())

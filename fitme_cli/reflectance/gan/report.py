@@ -25,7 +25,7 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
                       ring_profile, row_profile, region_band_correlation, hairline_edge_coherence,
                       dark_speck_depth, nyquist_log_ratio, corner_log_ratio, band_log_ratio, TOP_BANDS,
-                      region_grain_evenness)
+                      region_grain_evenness, filter_fit_r2)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring,
@@ -153,13 +153,27 @@ class _Side:
     # (N, k, 2) per sample the grain-evenness term's measure (``train._grain_evenness``): per region, how unevenly the
     # grain of the albedo (mean of r, g, b) and of the specular is spread over tiles
     grain_evenness: torch.Tensor
+    # (N, k, 2) per sample the specular-Sobel term's measure (``train._specular_sobel``): per region, the correlation
+    # of the specular's Sobel slopes along u and v with the normals' x and y
+    specular_sobel: torch.Tensor
+    # (N, len(_FILTER_REGIONS), 2) per sample ``metrics.filter_fit_r2`` of the normals' x and y on the specular over
+    # the scalp and the neck (``_filter_size``): how much of the normals a linear filter of the specular explains
+    filter_fit: torch.Tensor
+
+
+_FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
+
+
+def _filter_size(resolution: int) -> int:
+    """The side of judge P's filter: 7 texels at 256^2 (the judge's), 3 below 128^2."""
+    return 7 if resolution >= 128 else 3
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "eye_ring", "specular_slope", "forehead_rows", "mouth_rows",
                "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
-               "grain_evenness")
+               "grain_evenness", "specular_sobel", "filter_fit")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -284,6 +298,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     from ...shape.regions import REGIONS
 
     forehead = edges == REGIONS.index("forehead")  # the hairline band carved out, as the forehead-rows term's
+    filter_masks = [regions == REGIONS.index(name) for name in _FILTER_REGIONS]
+    size = _filter_size(regions.shape[0])
     mouth_k = sum(int(m.any(1).sum()) for m in _mouth(regions.shape[0]))  # the lips' and the ring's rows
     lip_k = sum(_lip_ring_counts(regions.shape[0]))  # the lip ring's rows, both sides
     halves = eye_ring_halves(regions.shape[0])
@@ -357,6 +373,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "eye_flat": _eye_flat(stored, regions)[:, :12],
             "brow_profile": _brow_profile(net, regions, G.settings)[:, :4 * _BROW_BINS].view(len(x), 4, _BROW_BINS),
             "lip_ring": _lip_ring(net, regions, G.settings)[:, :lip_k * 4].view(len(x), lip_k, 4),
+            "specular_sobel": region_slope_link(x[:, 3:4], x[:, 4:7], regions, kernel="sobel"),
+            "filter_fit": torch.stack([filter_fit_r2(x[:, 3], x[:, 4:6], mask, size) for mask in filter_masks], 1),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -563,6 +581,21 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "specular_slope_by_region": {_region_name(lab): {side: _slope_row(m.specular_slope[:, j])
                                                          for side, m in (("data", real), ("gan", gan))}
                                      for j, lab in enumerate(region_labels(regions))},
+        # the hair's normals a looser filter of its specular (the 354.76 kimg judge P): per region, the correlation of
+        # the specular's Sobel slopes along u and v with the normals' x and y (``metrics.region_slope_link``, kernel
+        # "sobel": how the data's normals are made), the 10th, 50th and 90th percentiles over samples of each
+        "specular_sobel_by_region": {
+            _region_name(lab): {axis: {side: _quantiles(m.specular_sobel[:, j, a], (0.1, 0.5, 0.9))
+                                       for side, m in (("data", real), ("gan", gan))}
+                                for a, axis in enumerate(("u", "v"))}
+            for j, lab in enumerate(region_labels(regions))},
+        # judge P's own measure: per region of ``_FILTER_REGIONS``, the share of the normals' x and y that a least-squares
+        # linear filter of the specular (``_filter_size`` texels square, fitted per sample) explains, the 10th, 50th
+        # and 90th percentiles over samples
+        "filter_fit_r2": {name: {axis: {side: _quantiles(m.filter_fit[:, j, a], (0.1, 0.5, 0.9))
+                                        for side, m in (("data", real), ("gan", gan))}
+                                 for a, axis in enumerate(("normal_x", "normal_y"))}
+                          for j, name in enumerate(_FILTER_REGIONS)},
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
