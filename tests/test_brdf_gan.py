@@ -3175,22 +3175,24 @@ def test_spectrum_loss_pulls_each_frequency_by_its_relative_running_gap():
     assert _spectrum_gap(two, torch.cat([target, torch.zeros_like(target)])) == pytest.approx(0.035)
 
 
-@pytest.mark.parametrize("name", ["spectrum", "specular_spectrum"])
+@pytest.mark.parametrize("name", ["spectrum", "specular_spectrum", "normal_spectrum"])
 def test_spectrum_weights_move_the_fakes_grain_spectrum(name, tmp_path):
-    """Same seed, same steps: with the spectrum term (of the albedo, or of the specular) G's finest-band spectrum ends
-    nearer a target it was far from."""
+    """Same seed, same steps: with the spectrum term (of the albedo, the specular, or the normals' x and y) G's
+    finest-band spectrum ends nearer a target it was far from."""
     from fitme_cli.reflectance.gan.metrics import spectrum_distance
-    from fitme_cli.reflectance.gan.train import _albedo_spectra, _specular_spectra
+    from fitme_cli.reflectance.gan.train import _albedo_spectra, _normal_spectra, _specular_spectra
 
-    measure = {"spectrum": _albedo_spectra, "specular_spectrum": lambda y, r: _specular_spectra(y, r, TINY)}[name]
+    measure = {"spectrum": _albedo_spectra, "specular_spectrum": lambda y, r: _specular_spectra(y, r, TINY),
+               "normal_spectrum": _normal_spectra}[name]
     data = _tiny_data()
     regions = torch.full((16, 16), 2, dtype=torch.uint8)
     z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
     # the target: a fresh G's spectrum tilted toward low frequencies
     with torch.no_grad():
-        base = measure(new_state(TINY, TrainSettings(batch=8, kimg=1)).G(z).cat(), regions).mean(0).view(16, 9)
+        base = measure(new_state(TINY, TrainSettings(batch=8, kimg=1)).G(z).cat(), regions).mean(0).view(-1, 16, 9)
     f = (torch.fft.fftfreq(16)[:, None] ** 2 + (torch.arange(9)[None] / 16) ** 2).sqrt()
-    target = (base * torch.exp(-f / 0.15) / (base * torch.exp(-f / 0.15)).sum()).flatten()
+    tilted = base * torch.exp(-f / 0.15)
+    target = (tilted / tilted.sum((1, 2), keepdim=True)).flatten()  # each spectrum (the normals: x, then y) sums to 1
 
     def run(weight):
         state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01,
@@ -3199,14 +3201,14 @@ def test_spectrum_weights_move_the_fakes_grain_spectrum(name, tmp_path):
         setattr(state, f"{name}_target", target)
         out = _seeded_steps(state, data)
         with torch.no_grad():
-            s = measure(state.G(z).cat(), regions).view(64, 1, 16, 9)
-        return float(spectrum_distance(s, target.view(1, 1, 16, 9))[0]), out
+            s = measure(state.G(z).cat(), regions).view(64, -1, 16, 9)
+        return float(spectrum_distance(s, target.view(1, -1, 16, 9)).mean()), out
 
     off, l_off = run(0.0)
     on, l_on = run(0.05)
     # measured: albedo 0.072 against 0.217; specular 0.186 against 0.291 (the tiny G's one specular channel moves less
-    # in these steps, and no more at weight 0.5)
-    assert on < off * (0.5 if name == "spectrum" else 0.75), (on, off)
+    # in these steps, and no more at weight 0.5); normals 0.173 against 0.223 (two spectra, both pulled)
+    assert on < off * {"spectrum": 0.5, "specular_spectrum": 0.75, "normal_spectrum": 0.85}[name], (on, off)
     assert f"{name}_gap" not in l_off[0] and 0 < l_on[-1][f"{name}_gap"] < l_on[0][f"{name}_gap"]
     _assert_region_term_refusals(name, data, tmp_path)
 
@@ -3231,6 +3233,29 @@ def test_specular_spectra_are_the_decoded_speculars_and_blind_to_the_albedo_and_
     wave[:, 3] = 0.05 * torch.cos(2 * math.pi * 0.25 * (xx + yy))
     peak = int(_specular_spectra(wave, regions, TINY).mean(0).argmax())
     assert divmod(peak, 9) == (4, 4)  # fy = fx = 4 / 16 cycles per texel (its conjugate, -4 / 16 both, is the other half)
+
+
+def test_normal_spectra_are_the_normals_x_and_y_and_blind_to_the_albedo_and_specular():
+    """The normal-spectrum measure is ``region_spectrum`` of the normals' x, then y; blind to the albedo, the specular
+    and the normals' scale; a wave along u in x alone puts x's peak on its frequency and leaves y's as it was."""
+    from fitme_cli.reflectance.gan.metrics import region_spectrum
+    from fitme_cli.reflectance.gan.train import _normal_spectra
+
+    x = _tiny_data()
+    regions = torch.full((16, 16), 2, dtype=torch.uint8)
+    x[:, 4:6] += 0.3 * torch.randn(x[:, 4:6].shape, generator=torch.Generator().manual_seed(2))
+    got = _normal_spectra(x, regions)
+    assert got.shape == (16, 2 * 16 * 9)
+    torch.testing.assert_close(got, torch.cat([region_spectrum(x[:, 4], regions).flatten(1),
+                                               region_spectrum(x[:, 5], regions).flatten(1)], 1))
+    other = x.clone()
+    other[:, :4], other[:, 4:6] = -other[:, :4], 3 * other[:, 4:6]
+    torch.testing.assert_close(_normal_spectra(other, regions), got)
+    wave = x.clone()
+    wave[:, 4] = 0.05 * torch.cos(2 * math.pi * 0.375 * torch.arange(16.0)).expand(16, 16)
+    spectra = _normal_spectra(wave, regions)
+    assert divmod(int(spectra[:, :144].mean(0).argmax()), 9) == (0, 6)  # fy 0, fx 6 / 16 cycles per texel
+    torch.testing.assert_close(spectra[:, 144:], got[:, 144:])
 
 
 def test_branch_noise_sets_only_the_branched_layers_noise():
@@ -4552,7 +4577,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4630,6 +4655,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "grain_evenness_gap" not in lines[0]
     assert state.train.specular_sobel_weight == 0.5 and lines[-1]["specular_sobel_gap"] > 0
     assert "specular_sobel_gap" not in lines[0]
+    assert state.train.normal_spectrum_weight == 0.01 and lines[-1]["normal_spectrum_gap"] == 0  # no whole 16^2 window
+    assert "normal_spectrum_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4805,7 +4832,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
                       "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region",
-                      "specular_sobel_by_region", "filter_fit_r2"}
+                      "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -4995,7 +5022,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     spec = m["albedo_spectrum_tv_by_region"]  # only the regions with a whole 16^2 window at 64^2
     assert spec and set(spec) < set(coh) and "lips" not in spec
     assert set(m["specular_spectrum_tv_by_region"]) == set(spec)
-    for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values()):
+    normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
+    assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
+    for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()
+                                                                               for r in v.values())):
         assert 0 <= r["half_vs_half"] <= 1 and 0 < r["gan_vs_heldout_half"] <= 1 and 0 < r["excess_share"] <= 1
         assert -0.5 <= r["excess_peak_cycles_per_texel"][0] <= 0.5 and 0 <= r["excess_peak_cycles_per_texel"][1] <= 0.5
     assert all(set(r) == {"between", "coarse", "fine"} and all(np.isfinite(v) and v >= 0 for v in r.values())

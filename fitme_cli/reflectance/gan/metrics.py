@@ -49,7 +49,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "log_chroma", "region_texel_grain", "region_grain_evenness", "LATTICE_PARTS", "texel_lattice",
            "region_band_correlation",
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
-           "region_edge_sharpness", "SLOPE_KERNELS", "region_slope_link", "filter_fit_r2", "row_profile", "hairline_edge_coherence",
+           "region_edge_sharpness", "SLOPE_KERNELS", "region_slope_link", "filter_fit_r2", "row_profile",
+           "hairline_edge_coherence",
            "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "TOP_BANDS", "band_log_ratio", "region_band_skew", "region_band_neighbour",
            "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range"]
 
@@ -1068,6 +1069,7 @@ def filter_fit_r2(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, size: in
         explained = (beta * moment).sum(0)
         out[i] = torch.where(total > 0, explained / total.clamp_min(torch.finfo(total.dtype).tiny), 0).clamp(0, 1)
     return out
+
 
 def region_specular_link(specular: torch.Tensor, normals: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     """specular: (N, 1, R, R), any affine units (linear A_S or network space); normals: (N, 3, R, R) (unit, or network

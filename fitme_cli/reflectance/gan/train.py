@@ -57,7 +57,7 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "edge_sharpness", "specular_slope", "forehead_rows", "albedo_specular_link", "hairline_edge",
                  "hairline_specks", "beard_band", "relief_band", "nyquist", "normal_symmetry", "texel_neighbour",
                  "mouth_rows", "screen", "specular_quantile", "range_map", "range_quantile", "eye_flat",
-                 "brow_profile", "lip_ring", "grain_evenness", "specular_sobel")
+                 "brow_profile", "lip_ring", "grain_evenness", "specular_sobel", "normal_spectrum")
 
 
 @dataclass(frozen=True)
@@ -453,9 +453,16 @@ class TrainSettings:
     # the Sobel slopes of a height that on the scalp is the specular, so there the link is tight on every face. At
     # 354.76 kimg G_ema's was looser on the scalp (medians -0.907 / -0.925 against -0.926 / -0.946; q10 -0.923 against
     # -0.959) and tighter on the neck, the judge's tell (a 7x7 filter of the specular explained less of the hair's
-    # normals); the specular-slope term pulls the mean of the central slopes' link only. 0: off
+    # normals). Unlike the specular-slope term (central slopes, absolute gaps), each region's gap counts in units of the
+    # data's spread, so the tight scalp weighs as much as the loose skin. 0: off
     specular_sobel_weight: float = 0.0
     specular_sobel_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: the spectrum term on the normals' x and y (``_normal_spectra``). At 358.06 kimg their finest band
+    # sat too low in frequency: on the neck the share at 7/16 cycle and up along each axis was 0.021 / 0.017 against
+    # the data's 0.031 / 0.031 (the spectra's TV distance 0.08-0.12 on the neck, skin and forehead), the judge's tell
+    # (the neck normals' row power at 0.42-0.47 cycle 4.5x below the data's; docs/brdf_gan.md). 0: off
+    normal_spectrum_weight: float = 0.0
+    normal_spectrum_beta: float = 0.99  # per-step decay of the running spectra
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -770,6 +777,10 @@ class TrainState:
     # the specular-Sobel term's target, and G's running mean of them
     specular_sobel_target: torch.Tensor | None = None
     running_specular_sobel: torch.Tensor | None = None
+    # (2 * k * 16 * 9,) float32: the data's per-region finest-band spectra of the normals' x, then y
+    # (``_normal_spectra``), the normal-spectrum term's target, and G's running mean of them
+    normal_spectrum_target: torch.Tensor | None = None
+    running_normal_spectrum: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1508,6 +1519,13 @@ def _specular_spectra(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) ->
     return region_spectrum(decode_specular(x[:, 3:4], s)[:, 0], regions).flatten(1)
 
 
+def _normal_spectra(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * k * 16 * 9): per region, the finest-band spectrum of the normals' x, then
+    of their y (``metrics.region_spectrum``, each normalised, so network space or unit vectors alike), the
+    normal-spectrum term's measure."""
+    return torch.cat([region_spectrum(x[:, 4], regions).flatten(1), region_spectrum(x[:, 5], regions).flatten(1)], 1)
+
+
 def data_spectrum(data: torch.Tensor, regions: torch.Tensor, n: int = 512, chunk: int = 64) -> torch.Tensor:
     """(k * 16 * 9,) float32: the per-region albedo spectra of the first n data samples (the spectrum term's target)."""
     return _data_mean(lambda x: _albedo_spectra(x, regions), data, n, chunk)
@@ -1876,12 +1894,13 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "brow_profile": lambda x, regions: _brow_profile(x, regions, gan),
             "lip_ring": lambda x, regions: _lip_ring(x, regions, gan),
             "grain_evenness": lambda x, regions: _grain_evenness(x, regions, gan),
-            "specular_sobel": lambda x, regions: _specular_sobel(x, regions, gan)}
+            "specular_sobel": lambda x, regions: _specular_sobel(x, regions, gan),
+            "normal_spectrum": _normal_spectra}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
 # as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum and
-# specular_spectrum: mean TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the
+# specular_spectrum and normal_spectrum: mean TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the
 # same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map and range_map: over
 # ``_detail_map_scale``;
 # tone_band and chroma_band and specular_band, grain, lattice, chroma_grain and beard_band as band; beard,
@@ -1911,7 +1930,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "range_map": (detail_map_loss, _detail_map_gap), "range_quantile": (spread_loss, _spread_gap),
                   "eye_flat": (spread_loss, _spread_gap), "brow_profile": (spread_loss, _spread_gap),
                   "lip_ring": (spread_loss, _spread_gap), "grain_evenness": (spread_loss, _spread_gap),
-                  "specular_sobel": (spread_loss, _spread_gap)}
+                  "specular_sobel": (spread_loss, _spread_gap),
+                  "normal_spectrum": (spectrum_loss, _spectrum_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
