@@ -171,8 +171,8 @@ def _filter_size(resolution: int) -> int:
 
 
 # the ``_Side`` fields ``_measure`` keeps per sample
-_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ring", "specular_slope", "forehead_rows", "mouth_rows",
-               "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
+_PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ring", "specular_slope", "forehead_rows",
+               "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
                "grain_evenness", "specular_sobel", "filter_fit")
 
