@@ -1899,9 +1899,9 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
-# as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum and
-# specular_spectrum and normal_spectrum: mean TV distance of the spectra; colour: mean |running - target| / target (floored); tone: the
-# same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map and range_map: over
+# as "{term}_gap"). Coherence and relief: mean |running - target|; band: mean |running / target - 1|; spectrum,
+# specular_spectrum and normal_spectrum: mean TV distance of the spectra; colour: mean |running - target| / target
+# (floored); tone: the same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map and range_map: over
 # ``_detail_map_scale``;
 # tone_band and chroma_band and specular_band, grain, lattice, chroma_grain and beard_band as band; beard,
 # hairline_share, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope, forehead_rows,
