@@ -2429,6 +2429,68 @@ def test_specular_sobel_measure_and_pull(tmp_path):
     _check_spread_pull("specular_sobel", lambda y, r: _specular_sobel(y, r, TINY), regions, tmp_path, 0.5, beta=0.5)
 
 
+def test_region_flat_share_against_a_loop_known_values_gradients_and_bad_input():
+    """Per region, the mean of exp(-(x^2 + y^2) / tau^2) equals a loop's; flat normals give 1, normals tilted far past
+    tau 0, a region half flat 1/2; z and any further channel are not read; float64 gradcheck; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import region_flat_share
+
+    regions = _two_regions()
+    n = torch.randn(2, 3, 16, 16, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2e-3
+    got = region_flat_share(n, regions, 2e-3)
+    assert got.shape == (2, 2) and got.dtype == torch.float64 and bool(((got > 0.1) & (got < 0.9)).all())
+    for b in range(2):
+        for k, lab in enumerate((2, 7)):
+            m = regions == lab
+            want = torch.exp(-(n[b, 0][m] ** 2 + n[b, 1][m] ** 2) / 2e-3 ** 2).mean()
+            assert abs(float(got[b, k] - want)) < 1e-12
+    torch.testing.assert_close(region_flat_share(n[:, :2], regions, 2e-3), got)  # z is not read
+    flat = torch.zeros(1, 3, 16, 16)
+    torch.testing.assert_close(region_flat_share(flat, regions), torch.ones(1, 2))
+    flat[:, 0, 8:] = 0.05  # 50 tau: the lower half of each region leans
+    torch.testing.assert_close(region_flat_share(flat, regions), torch.full((1, 2), 0.5))
+    small = (torch.randn(1, 2, 8, 8, dtype=torch.float64) * 1e-3).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: region_flat_share(t, _two_regions(8)), (small,), eps=1e-8, atol=1e-6)
+    for bad, reg, tau in ((n.long(), regions, 1e-3), (n[:, :1], regions, 1e-3), (n, regions[:8], 1e-3),
+                          (n, regions.long(), 1e-3), (n, regions, 0.0), (n, regions, float("nan"))):
+        with pytest.raises(ValueError, match="region_flat_share: (expected|tau must)"):
+            region_flat_share(bad, reg, tau)
+
+
+def test_normal_tilt_measure_and_pull(tmp_path):
+    """The normal-tilt measure is, per region, the decoded normals' mean x and y in per mille, their squared deviations
+    from the batch's mean times B / (B - 1), and the flat share in per cent (``region_flat_share`` at tau 1e-3), then
+    the squares of all; blind to the albedo, the specular and the normals' z; a batch of one is refused; its data
+    target is taken in whole training batches; with the term G's statistics end nearer a target one spread above and
+    one below than without it; refusals as every term's."""
+    from fitme_cli.reflectance.gan.metrics import region_flat_share, region_moments
+    from fitme_cli.reflectance.gan.train import _data_target, _normal_tilt
+
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1) * 0.05
+    xy = x[:, 4:6] * TINY.normal_scale
+    tilt = region_moments(xy, regions)[:, :, 0].flatten(1) * 1000
+    spread = (tilt - tilt.mean(0)).square() * 4 / 3
+    flat = region_flat_share(xy, regions, 1e-3) * 100
+    got = _normal_tilt(x, regions, TINY)
+    assert got.shape == (4, 20)
+    want = torch.cat([tilt, spread, flat], 1)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    assert bool(((flat > 0.2) & (flat < 10)).all())  # x, y ~5e-3 of the unit normal: a few texels within tau 1e-3
+    torch.testing.assert_close(got[:, 4:8].mean(0), tilt.var(0))  # the unbiased variance between the batch's samples
+    other = x.clone()
+    other[:, :4] = torch.randn(4, 4, 16, 16, generator=torch.Generator().manual_seed(1))
+    other[:, 6] = 0.3
+    torch.testing.assert_close(_normal_tilt(other, regions, TINY), got)
+    with pytest.raises(ValueError, match="_normal_tilt needs a batch of at least 2"):
+        _normal_tilt(x[:1], regions, TINY)
+    data = _tiny_data()  # 16 samples: the target is the mean over 4 whole batches of 4
+    target = _data_target("normal_tilt", lambda y, r: _normal_tilt(y, r, TINY), data, regions, 4)
+    torch.testing.assert_close(target, torch.cat([_normal_tilt(c.float(), regions, TINY) for c in data.split(4)]).mean(0))
+    # the first step's gap is wider than 1 spread: its batch of 8's variances are one draw each, the base's of 64
+    _check_spread_pull("normal_tilt", lambda y, r: _normal_tilt(y, r, TINY), regions, tmp_path, 0.5, beta=0.5,
+                       first_gap=(0.7, 2.0))
+
+
 def test_specular_slope_weight_moves_the_fakes_slope_and_is_blind_to_the_albedo(tmp_path):
     """The specular-slope measure is ``region_slope_link`` of the decoded specular and the normals, blind to the albedo;
     with the term G's correlation moves toward a target above and one below where it starts; refusals as every
@@ -4577,7 +4639,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4657,6 +4719,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "specular_sobel_gap" not in lines[0]
     assert state.train.normal_spectrum_weight == 0.01 and lines[-1]["normal_spectrum_gap"] == 0  # no whole 16^2 window
     assert "normal_spectrum_gap" not in lines[0]
+    assert state.train.normal_tilt_weight == 0.5 and lines[-1]["normal_tilt_gap"] > 0
+    assert "normal_tilt_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4832,7 +4896,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
                       "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region",
-                      "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region"}
+                      "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
+                      "normal_tilt_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5022,6 +5087,13 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     spec = m["albedo_spectrum_tv_by_region"]  # only the regions with a whole 16^2 window at 64^2
     assert spec and set(spec) < set(coh) and "lips" not in spec
     assert set(m["specular_spectrum_tv_by_region"]) == set(spec)
+    tilt = m["normal_tilt_by_region"]  # per region: the tilt's mean and spread per axis, per mille; the flat share
+    assert tilt and set(tilt) <= set(coh) and all(list(v) == ["x_per_mille", "y_per_mille", "flat_percent"]
+                                                  for v in tilt.values()), tilt
+    assert all(list(v[a]) == ["data", "gan"] and all(list(q) == ["mean", "sd"] and q["sd"] > 0 for q in v[a].values())
+               for v in tilt.values() for a in ("x_per_mille", "y_per_mille")), tilt
+    assert all(0 <= q[0] <= q[1] <= q[2] <= 100 for v in tilt.values() for q in v["flat_percent"].values()), tilt
+    assert any(abs(v[a]["data"]["mean"]) > 0.1 for v in tilt.values() for a in ("x_per_mille", "y_per_mille")), tilt
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

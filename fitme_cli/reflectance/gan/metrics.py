@@ -44,7 +44,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "feature_parts", "region_albedo", "frechet_distance", "detail_region", "detail_link",
            "modality_consistency", "interpolation_smoothness", "orientation_coherence", "orientation_field",
            "region_coherence", "strand_coherence", "region_band_energy", "region_albedo_bands", "region_spectrum",
-           "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "hair_share",
+           "spectrum_distance", "spectrum_excess_peak", "region_relief", "region_moments", "region_flat_share",
+           "hair_share",
            "soft_hair_share", "soft_hairline_share", "crown_window", "crown_flow", "gaussian_blur", "detail_map",
            "log_chroma", "region_texel_grain", "region_grain_evenness", "LATTICE_PARTS", "texel_lattice",
            "region_band_correlation",
@@ -314,6 +315,26 @@ def region_moments(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     zero = var <= 0
     std = torch.where(zero, torch.ones_like(var), var).sqrt() * ~zero
     return torch.stack([mean, std], 1).permute(0, 3, 1, 2)
+
+
+def region_flat_share(normals: torch.Tensor, regions: torch.Tensor, tau: float = 1e-3) -> torch.Tensor:
+    """normals: (N, 2+, R, R) float, unit normals' tangent-space x and y first (only they are read); regions: (R, R)
+    uint8 labels (255 unmapped) -> (N, k) same dtype in [0, 1]: per sample and region of ``region_labels``, the mean
+    over its texels of exp(-(x^2 + y^2) / tau^2), a soft share of the texels whose normal points straight out.
+
+    The 358.06 kimg judge S's tell: the data draws some of the scalp, the triangles beside the jaw most of all, exactly
+    flat (x = y = 0 to the 16-bit PNG's step), where G's normals lean a little everywhere (64 maps at tau 1e-3: the
+    scalp's share 1.4 % +- 0.7 % in the data, 0.23 % +- 0.09 % in G; docs/brdf_gan.md). At tau 1e-3 a texel counts
+    as flat when the judge's sheet (x 2.5, 8 bits) rounds it to the flat grey. Differentiable (the BRDF-GAN's
+    normal-tilt term)."""
+    if (normals.ndim != 4 or normals.shape[1] < 2 or not normals.is_floating_point()
+            or regions.shape != normals.shape[2:] or regions.dtype != torch.uint8):
+        raise ValueError(f"region_flat_share: expected float (N, 2+, R, R) normals and (R, R) uint8 regions matching "
+                         f"them, got {tuple(normals.shape)} {normals.dtype} and {tuple(regions.shape)} {regions.dtype}")
+    if not (math.isfinite(tau) and tau > 0):
+        raise ValueError(f"region_flat_share: tau must be finite and > 0, got {tau}")
+    flat = torch.exp(-(normals[:, 0].square() + normals[:, 1].square()) / tau ** 2)
+    return flat.flatten(1) @ _region_weights(regions, normals).T
 
 
 def _check_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int) -> None:

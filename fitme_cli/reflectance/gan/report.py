@@ -25,13 +25,12 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
                       ring_profile, row_profile, region_band_correlation, hairline_edge_coherence,
                       dark_speck_depth, nyquist_log_ratio, corner_log_ratio, band_log_ratio, TOP_BANDS,
-                      region_grain_evenness, filter_fit_r2)
+                      region_grain_evenness, filter_fit_r2, region_flat_share)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring,
-                    _lip_ring_counts, _mouth,
-                    _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour, copy_generator, load_checkpoint,
-                    sheet_ranges)
+from .train import (_BROW_BINS, _FLAT_TAU, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
+                    _lip_ring, _lip_ring_counts, _mouth, _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour,
+                    copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -160,6 +159,9 @@ class _Side:
     # (N, len(_FILTER_REGIONS), 2) per sample ``metrics.filter_fit_r2`` of the normals' x and y on the specular over
     # the scalp and the neck (``_filter_size``): how much of the normals a linear filter of the specular explains
     filter_fit: torch.Tensor
+    # (N, k, 3) per sample the normal-tilt term's measure (``train._normal_tilt``): per region, the normals' mean x and
+    # y in per mille, and the share of texels that point straight out in per cent (``metrics.region_flat_share``)
+    normal_tilt: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -174,7 +176,7 @@ def _filter_size(resolution: int) -> int:
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ring", "specular_slope", "forehead_rows",
                "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
-               "grain_evenness", "specular_sobel", "filter_fit")
+               "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -377,6 +379,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "lip_ring": _lip_ring(net, regions, G.settings)[:, :lip_k * 4].view(len(x), lip_k, 4),
             "specular_sobel": region_slope_link(x[:, 3:4], x[:, 4:7], regions, kernel="sobel"),
             "filter_fit": torch.stack([filter_fit_r2(x[:, 3], x[:, 4:6], mask, size) for mask in filter_masks], 1),
+            "normal_tilt": torch.cat([region_moments(x[:, 4:6] * 1000, regions)[:, :, 0],
+                                      region_flat_share(x[:, 4:6], regions, _FLAT_TAU)[..., None] * 100], 2),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -602,6 +606,19 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                         for side, m in (("data", real), ("gan", gan))}
                                  for a, axis in enumerate(("normal_x", "normal_y"))}
                           for j, name in enumerate(_FILTER_REGIONS)},
+        # normals that lean a little everywhere, by a tilt that varies from face to face (the 358.06 kimg judge S): per
+        # region, the mean over samples and the spread between them of the normals' mean x and y (per mille of the unit
+        # normal), and the 10th, 50th and 90th percentiles over samples of the share of texels that point straight out
+        # (``metrics.region_flat_share`` at ``train._FLAT_TAU``, per cent)
+        "normal_tilt_by_region": {
+            _region_name(lab): {
+                **{axis: {side: {"mean": round(float(m.normal_tilt[:, j, a].double().mean()), 3),
+                                 "sd": round(float(m.normal_tilt[:, j, a].double().std()), 3)}
+                          for side, m in (("data", real), ("gan", gan))}
+                   for a, axis in enumerate(("x_per_mille", "y_per_mille"))},
+                "flat_percent": {side: _quantiles(m.normal_tilt[:, j, 2], (0.1, 0.5, 0.9))
+                                 for side, m in (("data", real), ("gan", gan))}}
+            for j, lab in enumerate(region_labels(regions))},
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
