@@ -464,11 +464,11 @@ class TrainSettings:
     # (the neck normals' row power at 0.42-0.47 cycle 4.5x below the data's; docs/brdf_gan.md). 0: off
     normal_spectrum_weight: float = 0.0
     normal_spectrum_beta: float = 0.99  # per-step decay of the running spectra
-    # not in the paper: per sample and region, the mean tilt of the normals (x and y, per mille) and the soft share of
-    # texels whose normal points straight out (``_normal_tilt``), pulled as the lip ring's (``spread_loss``). At 358.06
-    # kimg G's per-sample tilt spread 2-4x the data's on the scalp, skin and neck (neck x 0.62 against 0.15 per mille)
-    # and its normals leaned a little where the data's are exactly flat (the scalp's flat share 0.23 % against 1.4 %),
-    # the judge's tell (docs/brdf_gan.md). Its 5k statistics sum to a large gradient: at 0.05 it was 3x the grain
+    # not in the paper: per sample and region, the mean tilt of the normals (x and y, per mille), its spread within the
+    # batch and the soft share of texels whose normal points straight out (``_normal_tilt``), pulled as the lip ring's
+    # (``spread_loss``). At 358.06 kimg G's per-sample tilt spread 2-4x the data's on the scalp, skin and neck (neck x
+    # 0.62 against 0.15 per mille) and its normals leaned a little where the data's are exactly flat (the scalp's flat
+    # share 0.23 % against 1.4 %), the judge's tell (docs/brdf_gan.md). Its 5k statistics sum to a large gradient: at 0.05 it was 3x the grain
     # evenness term's at 0.05 on G's output and D won at once (loss_d 0.07); run at 0.015. 0: off
     normal_tilt_weight: float = 0.0
     normal_tilt_beta: float = 0.99  # per-step decay of the running statistics and their squares
@@ -790,8 +790,8 @@ class TrainState:
     # (``_normal_spectra``), the normal-spectrum term's target, and G's running mean of them
     normal_spectrum_target: torch.Tensor | None = None
     running_normal_spectrum: torch.Tensor | None = None
-    # (2 * 3k,) float32: the data's mean tilts (x, y) and flat share per region and their squares (``_normal_tilt``),
-    # the normal-tilt term's target, and G's running mean of them
+    # (2 * 5k,) float32: the data's mean tilts (x, y), their within-batch spreads and flat share per region, and their
+    # squares (``_normal_tilt``), the normal-tilt term's target, and G's running mean of them
     normal_tilt_target: torch.Tensor | None = None
     running_normal_tilt: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
