@@ -468,8 +468,9 @@ class TrainSettings:
     # batch and the soft share of texels whose normal points straight out (``_normal_tilt``), pulled as the lip ring's
     # (``spread_loss``). At 358.06 kimg G's per-sample tilt spread 2-4x the data's on the scalp, skin and neck (neck x
     # 0.62 against 0.15 per mille) and its normals leaned a little where the data's are exactly flat (the scalp's flat
-    # share 0.23 % against 1.4 %), the judge's tell (docs/brdf_gan.md). Its 5k statistics sum to a large gradient: at 0.05 it was 3x the grain
-    # evenness term's at 0.05 on G's output and D won at once (loss_d 0.07); run at 0.015. 0: off
+    # share 0.23 % against 1.4 %), the judge's tell (docs/brdf_gan.md). Its 5k statistics sum to a large gradient: at
+    # 0.05 it was 3x the grain evenness term's at 0.05 on G's output and D won at once (loss_d 0.07); run at 0.015.
+    # 0: off
     normal_tilt_weight: float = 0.0
     normal_tilt_beta: float = 0.99  # per-step decay of the running statistics and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
