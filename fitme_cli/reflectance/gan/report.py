@@ -25,12 +25,12 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_edge_sharpness, region_slope_link, region_specular_link, region_texel_tails,
                       ring_profile, row_profile, region_band_correlation, hairline_edge_coherence,
                       dark_speck_depth, nyquist_log_ratio, corner_log_ratio, band_log_ratio, TOP_BANDS,
-                      region_grain_evenness, filter_fit_r2, region_flat_share)
+                      region_grain_evenness, filter_fit_r2)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_BROW_BINS, _FLAT_TAU, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
-                    _lip_ring, _lip_ring_counts, _mouth, _mouth_rows, _normal_symmetry, _relief_bands, _texel_neighbour,
-                    copy_generator, load_checkpoint, sheet_ranges)
+from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring,
+                    _lip_ring_counts, _mouth, _mouth_rows, _normal_spectra, _normal_symmetry, _relief_bands,
+                    _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -159,7 +159,7 @@ class _Side:
     # (N, len(_FILTER_REGIONS), 2) per sample ``metrics.filter_fit_r2`` of the normals' x and y on the specular over
     # the scalp and the neck (``_filter_size``): how much of the normals a linear filter of the specular explains
     filter_fit: torch.Tensor
-    # (N, k, 3) per sample the normal-tilt term's measure (``train._normal_tilt``): per region, the normals' mean x and
+    # (N, k, 3) per sample the normal-tilt term's parts (``train._tilt_and_flat``): per region, the normals' mean x and
     # y in per mille, and the share of texels that point straight out in per cent (``metrics.region_flat_share``)
     normal_tilt: torch.Tensor
 
@@ -365,7 +365,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "hairline_specks": torch.stack([dark_speck_depth(x[:, :3], zones == z, *hairline[1:]) for z in (1, 2)], 1),
             "lattice": texel_lattice(net),
             "specular_spectra": region_spectrum(x[:, 3], regions),
-            "normal_spectra": torch.stack([region_spectrum(x[:, 4 + a], regions) for a in range(2)], 1),
+            "normal_spectra": _normal_spectra(x, regions).view(len(x), 2, -1, 16, 9),
             "texel_tails": region_texel_tails(grain_maps[:, :2], regions),
             "gamut": (gamut_excess(x[:, :3]) > 0).double().mean((2, 3)),
             "eye_ring": torch.cat([ring_profile(log, rings), region_moments(log, rings)[:, 0].flip(1)], 1),
@@ -379,8 +379,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "lip_ring": _lip_ring(net, regions, G.settings)[:, :lip_k * 4].view(len(x), lip_k, 4),
             "specular_sobel": region_slope_link(x[:, 3:4], x[:, 4:7], regions, kernel="sobel"),
             "filter_fit": torch.stack([filter_fit_r2(x[:, 3], x[:, 4:6], mask, size) for mask in filter_masks], 1),
-            "normal_tilt": torch.cat([region_moments(x[:, 4:6] * 1000, regions)[:, :, 0],
-                                      region_flat_share(x[:, 4:6], regions, _FLAT_TAU)[..., None] * 100], 2),
+            "normal_tilt": _tilt_and_flat(x[:, 4:6], regions),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)

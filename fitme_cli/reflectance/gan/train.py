@@ -1229,10 +1229,17 @@ def _normal_tilt(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torc
     ``_FLAT_TAU``), then the squares of all (``spread_loss``). Per mille and per cent, so that the data's spreads
     (0.15-0.4 per mille on the scalp, skin and neck) stand above ``_SPREAD_FLOOR``. ``s``: the normals' decoding
     (``normal_scale``; x and y only, so no normalising)."""
-    xy = x[:, 4:6].to(torch.promote_types(x.dtype, torch.float32)) * s.normal_scale
-    tilt = region_moments(xy * 1000, regions)[:, :, 0].flatten(1)  # (B, 2k): x, y of each region in turn
-    flat = region_flat_share(xy, regions, _FLAT_TAU) * 100  # (B, k)
-    return _with_squares(torch.cat([tilt, _batch_spread(tilt, "_normal_tilt"), flat], 1))
+    parts = _tilt_and_flat(x[:, 4:6].to(torch.promote_types(x.dtype, torch.float32)) * s.normal_scale, regions)
+    tilt = parts[..., :2].flatten(1)  # (B, 2k): x, y of each region in turn
+    return _with_squares(torch.cat([tilt, _batch_spread(tilt, "_normal_tilt"), parts[..., 2]], 1))
+
+
+def _tilt_and_flat(xy: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 2, R, R) the normals' x and y as parts of the unit normal -> (B, k, 3): per region, their means in per mille
+    (``metrics.region_moments``) and the percentage of texels that point straight out (``metrics.region_flat_share``
+    at ``_FLAT_TAU``): ``_normal_tilt``'s per-sample parts, and the card's."""
+    return torch.cat([region_moments(xy * 1000, regions)[:, :, 0],
+                      region_flat_share(xy, regions, _FLAT_TAU)[..., None] * 100], 2)
 
 
 def _albedo_specular_link(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
