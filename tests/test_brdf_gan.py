@@ -2491,6 +2491,89 @@ def test_normal_tilt_measure_and_pull(tmp_path):
                        first_gap=(0.7, 2.0))
 
 
+def _hair_regions_map(r: int = 16) -> torch.Tensor:
+    """(r, r) uint8: ``_two_regions`` relabelled scalp (0) on the left and hairline (8) on the right, a scalp of the
+    other side (16) in the hairline's lower rows, and a forehead (2) strip between them."""
+    regions = _two_regions(r)
+    regions[regions == 2], regions[regions == 7] = 0, 8
+    regions[r // 2 :, r // 2 + 1 : -2] = torch.where(regions[r // 2 :, r // 2 + 1 : -2] == 8, 16, 255).to(torch.uint8)
+    regions[2:-2, r // 2 - 1 : r // 2 + 1] = 2
+    return regions
+
+
+def _hair_maps(n: int, albedo_of, seed: int = 0) -> torch.Tensor:
+    """(n, 7, 16, 16) network space: a specular of 0.07 +- 0.01 drawn per texel, the albedo ``albedo_of(specular)``
+    ((n, 1, 16, 16) -> (n, 3, 16, 16) linear), flat normals."""
+    g = torch.Generator().manual_seed(seed)
+    spec = 0.07 + 0.01 * (2 * torch.rand(n, 1, 16, 16, generator=g) - 1)
+    nrm = torch.zeros(n, 3, 16, 16)
+    nrm[:, 2] = 1
+    return encode_maps(ReflectanceMaps(albedo_of(spec), spec, nrm), TINY).cat()
+
+
+def test_specular_law_measure_and_pull(tmp_path):
+    """The specular-law measure is, per hair region (scalp and hairline, either side; the forehead left out), the Fisher
+    z of the correlation of the specular's two finest bands with the sRGB albedo's luminance and opponent axes, their
+    squared deviations from the batch's mean times B / (B - 1), the finest luminance z's covariance with the region's
+    mean sRGB luminance, then the squares of all. The data's law (a hair colour times exp(12.5 (specular - 0.07)))
+    gives every z at the cap, an albedo drawn apart from the specular z's near 0; blind to the normals, and the
+    forehead's label is not a region;
+    a batch of one and regions without hair are refused; float64 gradcheck; the data target in whole batches; the pull;
+    refusals as every term's."""
+    from fitme_cli.ops.srgb import linear_to_srgb
+    from fitme_cli.reflectance.gan.metrics import region_band_correlation, region_moments
+    from fitme_cli.reflectance.gan.train import _LAW_CAP, _data_target, _specular_law
+
+    regions = _hair_regions_map()
+    brown = torch.tensor([0.1, 0.06, 0.04])[None, :, None, None]
+    law = _hair_maps(4, lambda spec: brown * torch.exp(12.5 * (spec - 0.07)) * torch.linspace(0.5, 1.5, 4)[:, None, None, None])
+    got = _specular_law(law, regions, TINY)
+    assert got.shape == (4, 2 * 13 * 3) and got.dtype == torch.float32
+    cap = math.atanh(_LAW_CAP)
+    torch.testing.assert_close(got[:, :18], torch.full((4, 18), cap))  # 3 regions x 2 bands x 3 axes, all at the cap
+    torch.testing.assert_close(got[:, 18:36], torch.zeros(4, 18), atol=1e-5, rtol=0)  # no spread between samples
+    drawn = _hair_maps(4, lambda spec: 0.05 + 0.1 * torch.rand(4, 3, 16, 16, generator=torch.Generator().manual_seed(3)))
+    got = _specular_law(drawn, regions, TINY)
+    assert float(got[:, :18].abs().max()) < 1.2 and float(got[:, :18].abs().mean()) < 0.3  # small regions: wide
+    # the slow reference, region by region
+    maps = decode_maps(GanImages.split(drawn), TINY)
+    r, g_, b = linear_to_srgb(maps.albedo.clamp(0, 1)).unbind(1)
+    srgb = torch.stack([(r + g_ + b) / 3, r - g_, (r + g_) / 2 - b], 1)
+    z, tone = [], []
+    for lab in (0, 8, 16):
+        one = torch.where(regions == lab, 0, 255).to(torch.uint8)
+        z.append(torch.stack([region_band_correlation(maps.specular[:, 0], srgb, one, lvl)[:, 0] for lvl in (0, 1)], 1))
+        tone.append(region_moments(srgb[:, :1], one)[:, 0, 0, 0])
+    z = torch.stack(z, 1).clamp(-_LAW_CAP, _LAW_CAP).atanh()  # (4, 3, 2, 3)
+    tone = torch.stack(tone, 1)
+    flat = z.flatten(1)
+    lum = z[:, :, 0, 0]
+    want = torch.cat([flat, (flat - flat.mean(0)).square() * 4 / 3, (lum - lum.mean(0)) * (tone - tone.mean(0)) * 4 / 3], 1)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    for i in range(3):  # the covariance's batch mean is the unbiased covariance
+        torch.testing.assert_close(got[:, 36 + i].mean(0), torch.cov(torch.stack([lum[:, i], tone[:, i]]))[0, 1])
+    other = drawn.clone()
+    other[:, 4:7] = torch.randn(4, 3, 16, 16)
+    torch.testing.assert_close(_specular_law(other, regions, TINY), got)
+    no_forehead = torch.where(regions == 2, 255, regions).to(torch.uint8)
+    torch.testing.assert_close(_specular_law(drawn, no_forehead, TINY), got)
+    with pytest.raises(ValueError, match="_specular_law needs a batch of at least 2"):
+        _specular_law(drawn[:1], regions, TINY)
+    with pytest.raises(ValueError, match=r"_specular_law: expected regions with scalp or hairline texels .* got labels \[2, 7\]"):
+        _specular_law(drawn, _two_regions(), TINY)
+    small = drawn[:2, :4].double().requires_grad_()
+    rest = drawn[:2, 4:].double()
+    assert torch.autograd.gradcheck(lambda t: _specular_law(torch.cat([t, rest], 1), regions, TINY), (small,),
+                                    eps=1e-6, atol=1e-4)
+    data = _tiny_data()  # 16 samples: the target is the mean over 4 whole batches of 4
+    hair_data = torch.cat([data[:, :3] + 0.05 * torch.randn(16, 3, 16, 16, generator=torch.Generator().manual_seed(4)),
+                           data[:, 3:]], 1)
+    target = _data_target("specular_law", lambda y, r_: _specular_law(y, r_, TINY), hair_data, regions, 4)
+    torch.testing.assert_close(target, torch.cat([_specular_law(c, regions, TINY) for c in hair_data.split(4)]).mean(0))
+    _check_spread_pull("specular_law", lambda y, r_: _specular_law(y, r_, TINY), regions, tmp_path, 0.5, beta=0.5,
+                       first_gap=(0.7, 2.0))
+
+
 def test_specular_slope_weight_moves_the_fakes_slope_and_is_blind_to_the_albedo(tmp_path):
     """The specular-slope measure is ``region_slope_link`` of the decoded specular and the normals, blind to the albedo;
     with the term G's correlation moves toward a target above and one below where it starts; refusals as every
@@ -4639,7 +4722,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4721,6 +4804,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "normal_spectrum_gap" not in lines[0]
     assert state.train.normal_tilt_weight == 0.5 and lines[-1]["normal_tilt_gap"] > 0
     assert "normal_tilt_gap" not in lines[0]
+    assert state.train.specular_law_weight == 0.5 and lines[-1]["specular_law_gap"] > 0
+    assert "specular_law_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4897,7 +4982,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
                       "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region",
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
-                      "normal_tilt_by_region"}
+                      "normal_tilt_by_region", "specular_law_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5094,6 +5179,14 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                for v in tilt.values() for a in ("x_per_mille", "y_per_mille")), tilt
     assert all(0 <= q[0] <= q[1] <= q[2] <= 100 for v in tilt.values() for q in v["flat_percent"].values()), tilt
     assert any(abs(v[a]["data"]["mean"]) > 0.1 for v in tilt.values() for a in ("x_per_mille", "y_per_mille")), tilt
+    law = m["specular_law_by_region"]  # the hair regions only: per axis and band the Fisher z's quantiles, per side
+    assert law and set(law) <= {"scalp", "hairline"}, law
+    axes = [f"{a}_band{b}" for b in (0, 1) for a in ("luminance", "red_green", "yellow_blue")]
+    assert all(list(v) == [*axes, "luminance_z_tone_correlation"] for v in law.values()), law
+    assert all(list(v[a]) == ["data", "gan"] and all(-3.01 <= q[0] <= q[1] <= q[2] <= 3.01 for q in v[a].values())
+               for v in law.values() for a in axes), law
+    assert any(v["luminance_band0"]["data"][1] > 0.3 for v in law.values()), law  # the data's hair follows it
+    assert all(-1 <= c <= 1 for v in law.values() for c in v["luminance_z_tone_correlation"].values()), law
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

@@ -28,9 +28,10 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_grain_evenness, filter_fit_r2)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_BROW_BINS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring,
+from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring,
                     _lip_ring_counts, _mouth, _mouth_rows, _normal_spectra, _normal_symmetry, _relief_bands,
-                    _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint, sheet_ranges)
+                    _texel_neighbour, _tilt_and_flat, _hair_regions, _law_parts, copy_generator, load_checkpoint,
+                    sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -162,6 +163,10 @@ class _Side:
     # (N, k, 3) per sample the normal-tilt term's parts (``train._tilt_and_flat``): per region, the normals' mean x and
     # y in per mille, and the share of texels that point straight out in per cent (``metrics.region_flat_share``)
     normal_tilt: torch.Tensor
+    # (N, h, 7) per sample the specular-law term's parts (``train._law_parts``) over the hair regions of ``edges``
+    # (``train._hair_regions``: the scalp and the hairline): the Fisher z of the specular's correlation with the sRGB
+    # albedo's luminance, red-green and yellow-blue in the finest band, the same in the next, and the mean luminance
+    specular_law: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -176,7 +181,7 @@ def _filter_size(resolution: int) -> int:
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ring", "specular_slope", "forehead_rows",
                "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
-               "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt")
+               "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -310,6 +315,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
     row, col, side = face_square(regions.shape[0])
     face_rows, face_cols = slice(row, row + side), slice(col, col + side)
     beard_labels = torch.where(beard, 0, 255).to(torch.uint8)
+    hair = _hair_regions(edges)
     st = _Stats(mapped)
     fs, cm, cr = [], [], []
     # each per-batch measure under its ``_Side`` field's name; those in ``_PER_SAMPLE`` are kept per sample, the
@@ -333,6 +339,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
         near = [ring_profile(log, h) for h in halves if bool((h != 255).any())]  # above the openings, below
         stored = _stored(net, G.settings)  # rounded to the bits the data stores; the sheet and eye-flat rows read it
         ranges = sheet_ranges(stored, G.settings)
+        law, hair_tone = _law_parts(net, hair, G.settings)
         batch = {
             "spectra": region_spectrum(x[:, :3].mean(1), regions),
             "hairline": region_band_energy(x[:, :3], zones).mean(3),
@@ -380,6 +387,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "specular_sobel": region_slope_link(x[:, 3:4], x[:, 4:7], regions, kernel="sobel"),
             "filter_fit": torch.stack([filter_fit_r2(x[:, 3], x[:, 4:6], mask, size) for mask in filter_masks], 1),
             "normal_tilt": _tilt_and_flat(x[:, 4:6], regions),
+            "specular_law": torch.cat([law.flatten(2), hair_tone[..., None]], 2),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -618,6 +626,21 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                 "flat_percent": {side: _quantiles(m.normal_tilt[:, j, 2], (0.1, 0.5, 0.9))
                                  for side, m in (("data", real), ("gan", gan))}}
             for j, lab in enumerate(region_labels(regions))},
+        # the hair's albedo as a function of its specular (the 359.57 kimg judge U): per hair region (the scalp and the
+        # hairline), the 10th, 50th and 90th percentiles over samples of the Fisher z of the correlation of the
+        # specular's finest band (and the next) with the sRGB albedo's luminance and opponent axes (``train._law_parts``;
+        # z 2.6 is a correlation of 0.99), and the correlation over samples of the finest luminance z with the region's
+        # mean luminance (the data's law is exact in dark hair)
+        "specular_law_by_region": {
+            _region_name(lab): {
+                **{f"{axis}_band{level}": {side: _quantiles(m.specular_law[:, j, level * 3 + a], (0.1, 0.5, 0.9))
+                                           for side, m in (("data", real), ("gan", gan))}
+                   for level in range(_LAW_LEVELS) for a, axis in enumerate(("luminance", "red_green", "yellow_blue"))},
+                "luminance_z_tone_correlation": {
+                    side: round(float(np.corrcoef(m.specular_law[:, j, 0].double().numpy(),
+                                                  m.specular_law[:, j, -1].double().numpy())[0, 1]), 3)
+                    for side, m in (("data", real), ("gan", gan))}}
+            for j, lab in enumerate(region_labels(_hair_regions(edges)))},
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
