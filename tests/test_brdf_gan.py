@@ -2574,6 +2574,65 @@ def test_specular_law_measure_and_pull(tmp_path):
                        first_gap=(0.7, 2.0))
 
 
+def test_region_band_magnitude_correlation_against_numpy_known_values_gradients_and_bad_input():
+    """Per region, numpy's correlation of the bands' magnitudes; a map against itself, or its negative, gives 1 (the
+    signed correlation -1); bumps on the same texels, of any signs, near 1, and on texels apart negative; float64
+    gradcheck; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import _bandpass, region_band_correlation, region_band_magnitude_correlation
+
+    regions = _two_regions(32)
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(2, 32, 32, generator=g, dtype=torch.float64), torch.randn(2, 2, 32, 32, generator=g, dtype=torch.float64)
+    for level in (0, 1):
+        got = region_band_magnitude_correlation(a, b, regions, level)
+        band = _bandpass(torch.cat([a[:, None], b], 1), level + 1)[level].abs().numpy()
+        for i in range(2):
+            for j, lab in enumerate((2, 7)):
+                m = (regions == lab).numpy()
+                for c in range(2):
+                    want = np.corrcoef(band[i, 0][m], band[i, 1 + c][m])[0, 1]
+                    assert abs(float(got[i, j, c]) - want) < 1e-10
+    torch.testing.assert_close(region_band_magnitude_correlation(a, -a[:, None], regions), torch.ones(2, 2, 1, dtype=torch.float64))
+    torch.testing.assert_close(region_band_correlation(a, -a[:, None], regions), -torch.ones(2, 2, 1, dtype=torch.float64))
+    spots = torch.zeros(1, 32, 32)
+    spots[0, 4:28:4, 4:28:4] = 1  # single-texel spots
+    signs = spots * torch.where(torch.rand(1, 32, 32, generator=g) < 0.5, -1.0, 1.0)
+    apart = torch.roll(spots, 2, dims=2)
+    assert bool((region_band_magnitude_correlation(spots, signs[:, None], regions) > 0.9).all())
+    assert bool((region_band_magnitude_correlation(spots, apart[:, None], regions) < 0).all())
+    a64 = torch.rand(1, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    b64 = torch.randn(1, 2, 16, 16, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x, y: region_band_magnitude_correlation(x, y, _two_regions()), (a64, b64))
+    for bad in ((a.long(), b, regions), (a, b[:1], regions), (a, b[:, 0], regions), (a, b, regions[:16]),
+                (a, b, regions.long())):
+        with pytest.raises(ValueError, match="region_band_magnitude_correlation: expected"):
+            region_band_magnitude_correlation(*bad)
+    with pytest.raises(ValueError, match="got level 5, R 32"):
+        region_band_magnitude_correlation(a, b, regions, 5)
+
+
+def test_grain_overlap_measure_and_pull(tmp_path):
+    """The grain-overlap measure is, per region, ``region_band_magnitude_correlation`` of the decoded albedo's sRGB
+    luminance with the normals' x and y (network space), then the squares; blind to the specular and the normals' z;
+    the pull; refusals as every term's."""
+    from fitme_cli.ops.srgb import linear_to_srgb
+    from fitme_cli.reflectance.gan.metrics import region_band_magnitude_correlation
+    from fitme_cli.reflectance.gan.train import _grain_overlap
+
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    lum = linear_to_srgb(decode_maps(GanImages.split(x), TINY).albedo.clamp(0, 1)).mean(1)
+    want = region_band_magnitude_correlation(lum, x[:, 4:6], regions).flatten(1)
+    got = _grain_overlap(x, regions)
+    assert got.shape == (4, 8)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    other = x.clone()
+    other[:, 3] = torch.randn(4, 16, 16)
+    other[:, 6] = 0.3
+    torch.testing.assert_close(_grain_overlap(other, regions), got)
+    _check_spread_pull("grain_overlap", _grain_overlap, regions, tmp_path, 0.5, beta=0.5)
+
+
 def test_specular_slope_weight_moves_the_fakes_slope_and_is_blind_to_the_albedo(tmp_path):
     """The specular-slope measure is ``region_slope_link`` of the decoded specular and the normals, blind to the albedo;
     with the term G's correlation moves toward a target above and one below where it starts; refusals as every
@@ -4722,7 +4781,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4806,6 +4865,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "normal_tilt_gap" not in lines[0]
     assert state.train.specular_law_weight == 0.5 and lines[-1]["specular_law_gap"] > 0
     assert "specular_law_gap" not in lines[0]
+    assert state.train.grain_overlap_weight == 0.5 and lines[-1]["grain_overlap_gap"] > 0
+    assert "grain_overlap_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -4982,7 +5043,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "sheet_flat_share_percent", "sheet_range_ratio", "eye_opening_flatness",
                       "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region",
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
-                      "normal_tilt_by_region", "specular_law_by_region"}
+                      "normal_tilt_by_region", "specular_law_by_region",
+                      "grain_overlap_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5187,6 +5249,11 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                for v in law.values() for a in axes), law
     assert any(v["luminance_band0"]["data"][1] > 0.3 for v in law.values()), law  # the data's hair follows it
     assert all(-1 <= c <= 1 for v in law.values() for c in v["luminance_z_tone_correlation"].values()), law
+    overlap = m["grain_overlap_by_region"]  # per region and axis, the quantiles per side
+    assert set(overlap) == set(tilt) and all(list(v) == ["normal_x", "normal_y"] for v in overlap.values()), overlap
+    assert all(list(q) == ["data", "gan"] and all(-1 <= p[0] <= p[1] <= p[2] <= 1 for p in q.values())
+               for v in overlap.values() for q in v.values()), overlap
+    assert any(v["normal_x"]["data"][1] != 0 for v in overlap.values()), overlap
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

@@ -28,9 +28,9 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_grain_evenness, filter_fit_r2)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat, _lip_ring,
-                    _lip_ring_counts, _mouth, _mouth_rows, _normal_spectra, _normal_symmetry, _relief_bands,
-                    _texel_neighbour, _tilt_and_flat, _hair_regions, _law_parts, copy_generator, load_checkpoint,
+from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
+                    _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows, _normal_spectra,
+                    _normal_symmetry, _relief_bands, _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint,
                     sheet_ranges)
 
 __all__ = ["evaluate", "main"]
@@ -167,6 +167,9 @@ class _Side:
     # (``train._hair_regions``: the scalp and the hairline): the Fisher z of the specular's correlation with the sRGB
     # albedo's luminance, red-green and yellow-blue in the finest band, the same in the next, and the mean luminance
     specular_law: torch.Tensor
+    # (N, k, 2) per sample the grain-overlap term's measure (``train._grain_overlap``): per region, the correlation of
+    # the magnitudes of the sRGB albedo luminance's finest band and the normals' x's (then y's)
+    grain_overlap: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -181,7 +184,8 @@ def _filter_size(resolution: int) -> int:
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ring", "specular_slope", "forehead_rows",
                "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
-               "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law")
+               "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law",
+               "grain_overlap")
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -388,6 +392,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "filter_fit": torch.stack([filter_fit_r2(x[:, 3], x[:, 4:6], mask, size) for mask in filter_masks], 1),
             "normal_tilt": _tilt_and_flat(x[:, 4:6], regions),
             "specular_law": torch.cat([law.flatten(2), hair_tone[..., None]], 2),
+            "grain_overlap": _grain_overlap(net, regions)[:, :len(region_labels(regions)) * 2].view(len(x), -1, 2),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -641,6 +646,14 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                                   m.specular_law[:, j, -1].double().numpy())[0, 1]), 3)
                     for side, m in (("data", real), ("gan", gan))}}
             for j, lab in enumerate(region_labels(_hair_regions(edges)))},
+        # albedo grain and normal bumps that sit together too little on the body and too much in the hair (the 363.08
+        # kimg judge W): per region, the 10th, 50th and 90th percentiles over samples of the correlation of the
+        # magnitudes of the sRGB luminance's finest band and the normals' x's, then y's (``train._grain_overlap``)
+        "grain_overlap_by_region": {
+            _region_name(lab): {axis: {side: _quantiles(m.grain_overlap[:, j, a], (0.1, 0.5, 0.9))
+                                       for side, m in (("data", real), ("gan", gan))}
+                                for a, axis in enumerate(("normal_x", "normal_y"))}
+            for j, lab in enumerate(region_labels(regions))},
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
