@@ -852,11 +852,7 @@ def region_band_correlation(a: torch.Tensor, b: torch.Tensor, regions: torch.Ten
     """a: (N, R, R), b: (N, C, R, R), any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, C) a's dtype in
     [-1, 1]: per sample and region of ``region_labels``, the correlation of a's Laplacian band ``level`` (``_bandpass``;
     0: the finest, 1-2 texels; 1: 2-4; 2: 4-8) with each channel of b's. A flat region gives 0. Differentiable."""
-    if (a.ndim != 3 or b.ndim != 4 or b.shape[0] != a.shape[0] or b.shape[2:] != a.shape[1:] or not a.is_floating_point()
-            or regions.shape != a.shape[1:] or regions.dtype != torch.uint8):
-        raise ValueError(f"expected float (N, R, R) and (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
-                         f"{tuple(a.shape)} {a.dtype}, {tuple(b.shape)} and {tuple(regions.shape)} {regions.dtype}")
-    _check_level(level, a.shape[-1])
+    _check_band_pair("region_band_correlation", a, b, regions, level)
     band = _bandpass(torch.cat([a[:, None], b.to(a)], 1), level + 1)[level]  # (N, 1 + C, R, R)
     return _paired_region_correlation(band[:, :1].expand_as(band[:, 1:]), band[:, 1:], regions)
 
@@ -930,14 +926,20 @@ def region_band_magnitude_correlation(a: torch.Tensor, b: torch.Tensor, regions:
     whatever their signs, which ``region_band_correlation`` cannot see (the 363.08 kimg judge W's tell: G's albedo
     edges and normals' bumps sat together too little on the body and too much in the hair). A flat region gives 0.
     Differentiable, but at a band's zeros."""
-    if (a.ndim != 3 or b.ndim != 4 or b.shape[0] != a.shape[0] or b.shape[2:] != a.shape[1:] or not a.is_floating_point()
-            or regions.shape != a.shape[1:] or regions.dtype != torch.uint8):
-        raise ValueError(f"region_band_magnitude_correlation: expected float (N, R, R) and (N, C, R, R) maps and (R, R) "
-                         f"uint8 regions matching them, got {tuple(a.shape)} {a.dtype}, {tuple(b.shape)} and "
-                         f"{tuple(regions.shape)} {regions.dtype}")
-    _check_level(level, a.shape[-1])
+    _check_band_pair("region_band_magnitude_correlation", a, b, regions, level)
     band = _bandpass(torch.cat([a[:, None], b.to(a)], 1), level + 1)[level].abs()  # (N, 1 + C, R, R)
     return _paired_region_correlation(band[:, :1].expand_as(band[:, 1:]), band[:, 1:], regions)
+
+
+def _check_band_pair(name: str, a: torch.Tensor, b: torch.Tensor, regions: torch.Tensor, level: int) -> None:
+    """The paired band measures' input check: a float (N, R, R) map, (N, C, R, R) maps, (R, R) uint8 regions matching
+    them, a band they hold. ``name`` leads the error."""
+    if (a.ndim != 3 or b.ndim != 4 or b.shape[0] != a.shape[0] or b.shape[2:] != a.shape[1:] or not a.is_floating_point()
+            or regions.shape != a.shape[1:] or regions.dtype != torch.uint8):
+        raise ValueError(f"{name}: expected float (N, R, R) and (N, C, R, R) maps and (R, R) uint8 regions matching "
+                         f"them, got {tuple(a.shape)} {a.dtype}, {tuple(b.shape)} and {tuple(regions.shape)} "
+                         f"{regions.dtype}")
+    _check_level(level, a.shape[-1])
 
 
 def _paired_region_correlation(a: torch.Tensor, b: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:

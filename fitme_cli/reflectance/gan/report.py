@@ -29,9 +29,9 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
-                    _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows, _normal_spectra,
-                    _normal_symmetry, _relief_bands, _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint,
-                    sheet_ranges)
+                    _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
+                    _normal_spectra, _normal_symmetry, _relief_bands, _texel_neighbour, _tilt_and_flat, copy_generator,
+                    load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 

@@ -1286,8 +1286,7 @@ def _specular_law(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> tor
     z = parts.flatten(1)  # (B, h * levels * 3)
     spread = _batch_spread(z, "_specular_law")  # refuses a batch of one
     lum = parts[:, :, 0, 0]  # (B, h): the finest band's luminance z
-    cov = (lum - lum.mean(0)) * (tone - tone.mean(0)) * (len(x) / (len(x) - 1))
-    return _with_squares(torch.cat([z, spread, cov], 1))
+    return _with_squares(torch.cat([z, spread, _batch_covariance(lum, tone, "_specular_law")], 1))
 
 
 def _hair_regions(regions: torch.Tensor) -> torch.Tensor:
@@ -1382,10 +1381,17 @@ def _batch_spread(v: torch.Tensor, measure: str) -> torch.Tensor:
     B / (B - 1), whose mean over the batch is the values' unbiased variance between the batch's samples: a spread
     that G's swings between steps do not inflate, as a running mean square's would (``_albedo_tone``). ``measure``
     names the caller in the error."""
+    return _batch_covariance(v, v, measure)
+
+
+def _batch_covariance(u: torch.Tensor, v: torch.Tensor, measure: str) -> torch.Tensor:
+    """(B, ...) per-sample values u and v, B >= 2 -> (B, ...): each sample's product of their deviations from the
+    batch's means times B / (B - 1), whose mean over the batch is their unbiased covariance between the batch's
+    samples (``_batch_spread`` is u's with itself). ``measure`` names the caller in the error."""
     b = v.shape[0]
     if b < 2:
         raise ValueError(f"{measure} needs a batch of at least 2 samples for their spread, got {b}")
-    return (v - v.mean(0, keepdim=True)).square() * (b / (b - 1))
+    return (u - u.mean(0, keepdim=True)) * (v - v.mean(0, keepdim=True)) * (b / (b - 1))
 
 
 @functools.lru_cache(maxsize=4)
