@@ -4417,6 +4417,90 @@ def test_band_log_ratio_known_values_reference_gradients_and_bad_input():
         band_log_ratio(y.detach(), bands=((0.47, 0.48),))
 
 
+def test_radial_log_profile_known_values_reference_gradients_and_bad_input():
+    """White noise ~0 in every ring; a wave at 0.47 cycle along u raises the finest ring and not the one below; the same
+    wave along the diagonal (radius 0.47 too) as well, unlike ``band_log_ratio``'s Chebyshev bands, which put it lower;
+    a scale and an offset change nothing; equal to a loop over the bins of numpy's FFT; float64 gradients; bad input
+    is refused."""
+    from fitme_cli.reflectance.gan.metrics import RADIAL_EDGES, band_log_ratio, radial_log_profile
+
+    g = torch.Generator().manual_seed(0)
+    white = torch.randn(16, 1, 64, 64, generator=g, dtype=torch.float64)
+    got = radial_log_profile(white)
+    assert got.shape == (16, 1, len(RADIAL_EDGES) - 1) and float(got.mean((0, 1)).abs().max()) < 0.15
+    torch.testing.assert_close(radial_log_profile(3 * white + 1), got)
+    xx = torch.arange(64.0, dtype=torch.float64)
+    along_u = torch.cos(2 * math.pi * 0.47 * xx)[None, None, None, :].expand(16, 1, 64, 64)
+    f = 0.47 / math.sqrt(2)
+    diagonal = torch.cos(2 * math.pi * f * (xx[:, None] + xx[None, :]))[None, None].expand(16, 1, 64, 64)
+    both = torch.cat([along_u + 0.1 * white, diagonal + 0.1 * white], 1)
+    got = radial_log_profile(both)
+    # nearly all the energy in the finest ring: its ratio near log(all rings' bins / its bins) = log 5
+    assert (got[:, :, -1] > 1.5).all() and (got[:, :, -2] < got[:, :, -1] - 2).all()
+    cheb = band_log_ratio(both)  # the diagonal wave's Chebyshev radius is 0.33: below both top bands
+    assert (cheb[:, 0, 1] > 3).all() and (cheb[:, 1] < 0).all()
+
+    x = torch.randn(2, 1, 32, 32, generator=g, dtype=torch.float64)
+    r = 32
+    win = np.hanning(r + 1)[:r]  # periodic Hann
+    freq = np.fft.fftfreq(r)
+    edges = (0.05, 0.2, 0.35, 0.5)
+    ref = []
+    for m in x[:, 0].numpy():
+        fp = np.abs(np.fft.fft2((m - m.mean()) * win[:, None] * win[None, :])) ** 2
+        rings = [[] for _ in edges[1:]]
+        for i in range(r):
+            for j in range(r):
+                rad = math.hypot(freq[i], freq[j])
+                for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+                    if lo <= rad < hi:
+                        rings[k].append(fp[i, j])
+        total = np.mean([v for ring in rings for v in ring])
+        ref.append([np.log(np.mean(ring) / total) for ring in rings])
+    torch.testing.assert_close(radial_log_profile(x, edges)[:, 0], torch.tensor(ref, dtype=torch.float64))
+    y = torch.randn(1, 1, 16, 16, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: radial_log_profile(v, (0.05, 0.275, 0.5)), (y,))
+    for bad in (torch.zeros(1, 1, 15, 15), torch.zeros(1, 1, 8, 8)):
+        with pytest.raises(ValueError, match=r"expected an even R >= 16"):
+            radial_log_profile(bad)
+    with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps"):
+        radial_log_profile(torch.zeros(1, 16, 16))
+    for edges in ((0.4, 0.3), (0.1,), (0.2, 0.6)):
+        with pytest.raises(ValueError, match=r"expected at least 2 increasing edges in \[0, 1/2\]"):
+            radial_log_profile(white, edges)
+    with pytest.raises(ValueError, match=r"the ring \(0.05, 0.06\) holds no frequency at R 16"):
+        radial_log_profile(y.detach(), (0.05, 0.06, 0.5))
+
+
+def test_normal_radial_measure_and_pull(tmp_path):
+    """The normal-radial measure is ``radial_log_profile`` of the normals' x and y (network space) over the whole map,
+    then over the face's crop (the whole map at 16^2), then the squares; blind to the albedo, the specular and the
+    normals' z and scale; the pull; refusals as every term's."""
+    from fitme_cli.reflectance.gan.data import face_square, load_regions
+    from fitme_cli.reflectance.gan.metrics import RADIAL_EDGES, radial_log_profile
+    from fitme_cli.reflectance.gan.train import _normal_radial, _radial_edges
+
+    assert _radial_edges(128) == RADIAL_EDGES and _radial_edges(32) == (0.05, 0.275, 0.5)
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    assert face_square(16) == (0, 0, 16)
+    want = radial_log_profile(x[:, 4:6], (0.05, 0.275, 0.5)).flatten(1)
+    got = _normal_radial(x, regions)
+    assert got.shape == (4, 16)
+    torch.testing.assert_close(got, torch.cat([want, want, want.square(), want.square()], 1))
+    other = x.clone()
+    other[:, :4] = torch.randn(4, 4, 16, 16)
+    other[:, 6] = 0.3
+    other[:, 4:6] *= 2
+    torch.testing.assert_close(_normal_radial(other, regions), got)
+    big = torch.randn(2, 7, 128, 128, generator=torch.Generator().manual_seed(1))
+    row, col, side = face_square(128)
+    v = _normal_radial(big, load_regions(128))
+    assert v.shape == (2, 2 * 4 * 9)
+    torch.testing.assert_close(v[:, 18:36], radial_log_profile(big[:, 4:6, row:row + side, col:col + side]).flatten(1))
+    _check_spread_pull("normal_radial", _normal_radial, regions, tmp_path, 0.5, beta=0.5)
+
+
 def test_corner_log_ratio_known_values_reference_gradients_and_bad_input():
     """White noise ~0; a diagonal checkerboard over faint noise far above, while a checkerboard of columns (energy at
     the u Nyquist, v 0: outside the block) stays ~0 though ``nyquist_log_ratio`` sees both; per channel; a scale and an
@@ -4781,7 +4865,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4867,6 +4951,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "specular_law_gap" not in lines[0]
     assert state.train.grain_overlap_weight == 0.5 and lines[-1]["grain_overlap_gap"] > 0
     assert "grain_overlap_gap" not in lines[0]
+    assert state.train.normal_radial_weight == 0.5 and lines[-1]["normal_radial_gap"] > 0
+    assert "normal_radial_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -5044,7 +5130,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region",
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
                       "normal_tilt_by_region", "specular_law_by_region",
-                      "grain_overlap_by_region"}
+                      "grain_overlap_by_region", "normal_radial_profile"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5254,6 +5340,12 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert all(list(q) == ["data", "gan"] and all(-1 <= p[0] <= p[1] <= p[2] <= 1 for p in q.values())
                for v in overlap.values() for q in v.values()), overlap
     assert any(v["normal_x"]["data"][1] != 0 for v in overlap.values()), overlap
+    radial = m["normal_radial_profile"]  # per crop and axis, per side the rings' medians and the finest's quantiles
+    assert list(radial) == ["map", "face"] and all(list(v) == ["normal_x", "normal_y"] for v in radial.values())
+    for side in (q for v in radial.values() for a in v.values() for q in a.values()):
+        assert list(side) == ["ring_median_db", "finest_db"] and len(side["ring_median_db"]) == 2, side
+        assert all(np.isfinite(side["ring_median_db"])) and side["finest_db"] == sorted(side["finest_db"]), side
+    assert any(side["ring_median_db"][0] != 0 for v in radial.values() for a in v.values() for side in a.values())
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

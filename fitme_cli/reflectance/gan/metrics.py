@@ -52,7 +52,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "region_specular_link", "region_texel_tails", "gamut_excess", "ring_profile",
            "region_edge_sharpness", "SLOPE_KERNELS", "region_slope_link", "filter_fit_r2", "row_profile",
            "hairline_edge_coherence",
-           "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "TOP_BANDS", "band_log_ratio", "region_band_skew", "region_band_neighbour",
+           "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "TOP_BANDS", "band_log_ratio",
+           "RADIAL_EDGES", "radial_log_profile", "region_band_skew", "region_band_neighbour",
            "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
@@ -562,6 +563,38 @@ def band_log_ratio(x: torch.Tensor, bands: tuple[tuple[float, float], ...] = TOP
 
     ref = mean_in(*reference).clamp_min(1e-30)
     return torch.stack([(mean_in(lo, hi).clamp_min(1e-30) / ref).log() for lo, hi in bands], -1)
+
+
+# ``radial_log_profile``'s default rings, cycles per texel (Euclidean radius): tenths of an octave's worth up to Nyquist
+RADIAL_EDGES = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
+
+
+def radial_log_profile(x: torch.Tensor, edges: tuple[float, ...] = RADIAL_EDGES) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units, R even and >= 16 -> (N, C, len(edges) - 1): per sample, channel and ring, the
+    log of the mean FFT energy of the frequencies whose Euclidean radius |(u, v)| (cycles per texel) lies in
+    [edges[i], edges[i + 1]) over the mean energy of all the frequencies in [edges[0], edges[-1]), the map
+    Hann-windowed: the shape of the spectrum's fall, blind to the map's scale and offset. The rings leave out the
+    diagonal corners beyond 1/2 cycle, which ``corner_log_ratio`` and ``band_log_ratio`` (Chebyshev bands) include.
+    Each ring must hold at least one frequency.
+    The 363.08 kimg judge V's tell: over the whole map the normals' x energy at 0.45-0.5 cycle over 0.15-0.2 read
+    4 dB below the data's (network space, 64 maps at 256^2: G -25.2 dB against -20.9, q10-q90 of the data -21.7 to
+    -20.1) while ``band_log_ratio``'s Chebyshev bands, which the Nyquist term holds, sat on the data's."""
+    if x.ndim != 4 or not x.is_floating_point() or x.shape[-1] != x.shape[-2]:
+        raise ValueError(f"expected float (N, C, R, R) maps, got {tuple(x.shape)} {x.dtype}")
+    r = x.shape[-1]
+    if r % 2 or r < 16:
+        raise ValueError(f"expected an even R >= 16, got {r}")
+    if len(edges) < 2 or any(not 0 <= lo < hi <= 0.5 for lo, hi in zip(edges[:-1], edges[1:])):
+        raise ValueError(f"expected at least 2 increasing edges in [0, 1/2], got {edges}")
+    freq = torch.fft.fftfreq(r, dtype=torch.float64, device=x.device)
+    radius = (freq[:, None].square() + freq[None, :].square()).sqrt()
+    rings = [(radius >= lo) & (radius < hi) for lo, hi in zip(edges[:-1], edges[1:])]
+    for (lo, hi), ring in zip(zip(edges[:-1], edges[1:]), rings):
+        if not ring.any():
+            raise ValueError(f"the ring ({lo}, {hi}) holds no frequency at R {r}")
+    f = _windowed_power(x)
+    ref = f[..., (radius >= edges[0]) & (radius < edges[-1])].mean(-1).clamp_min(1e-30)
+    return torch.stack([(f[..., ring].mean(-1).clamp_min(1e-30) / ref).log() for ring in rings], -1)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

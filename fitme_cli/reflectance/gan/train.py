@@ -35,7 +35,8 @@ from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussia
                       ring_profile, row_profile, soft_hair_share, soft_hairline_share, texel_lattice,
                       hairline_edge_coherence, dark_speck_depth, nyquist_log_ratio, corner_log_ratio, band_log_ratio,
                       region_band_skew, region_band_neighbour, region_band_statistics, region_quantiles, local_range,
-                      region_grain_evenness, region_flat_share, region_band_magnitude_correlation)
+                      region_grain_evenness, region_flat_share, region_band_magnitude_correlation,
+                      RADIAL_EDGES, radial_log_profile)
 from .networks import (Discriminator, GanImages, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_maps,
                        decode_specular)
 from ...ops.srgb import linear_to_srgb
@@ -58,7 +59,7 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "hairline_specks", "beard_band", "relief_band", "nyquist", "normal_symmetry", "texel_neighbour",
                  "mouth_rows", "screen", "specular_quantile", "range_map", "range_quantile", "eye_flat",
                  "brow_profile", "lip_ring", "grain_evenness", "specular_sobel", "normal_spectrum",
-                 "normal_tilt", "specular_law", "grain_overlap")
+                 "normal_tilt", "specular_law", "grain_overlap", "normal_radial")
 
 
 @dataclass(frozen=True)
@@ -488,6 +489,13 @@ class TrainSettings:
     # (44 at weight 1). 0: off
     grain_overlap_weight: float = 0.0
     grain_overlap_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: per sample, the shape of the normals' radial spectrum (``_normal_radial``: x and y, over the
+    # whole map and the face's crop, ``metrics.radial_log_profile``), in the data's spreads (``spread_loss``). At
+    # 363.08 kimg G's normals x held 4.4 dB less at 0.45-0.5 cycle (against the rings' mean) than the data's, ~7 of
+    # the data's spreads, and 0.8 dB more at 0.35-0.4: the judge's tell (docs/brdf_gan.md). The Nyquist term's
+    # Chebyshev bands sat on the data's: G's top energy is in the diagonal corners, not the ring. 0: off
+    normal_radial_weight: float = 0.0
+    normal_radial_beta: float = 0.99  # per-step decay of the running statistics and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -818,6 +826,10 @@ class TrainState:
     # term's target, and G's running mean of them
     grain_overlap_target: torch.Tensor | None = None
     running_grain_overlap: torch.Tensor | None = None
+    # (2 * 4n,) float32, n rings (``_radial_edges``): the data's normal radial profiles and their squares
+    # (``_normal_radial``), the normal-radial term's target, and G's running mean of them
+    normal_radial_target: torch.Tensor | None = None
+    running_normal_radial: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1324,6 +1336,25 @@ def _grain_overlap(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     return _with_squares(region_band_magnitude_correlation(lum, x[:, 4:6], regions).flatten(1))
 
 
+def _radial_edges(resolution: int) -> tuple[float, ...]:
+    """The normal-radial term's rings for a face crop of ``resolution``^2: ``metrics.RADIAL_EDGES`` from 64^2 up (maps
+    of 128^2 and up); below, two rings (0.05-0.275-0.5 cycle), which hold frequencies on the tests' 16^2 crops."""
+    return RADIAL_EDGES if resolution >= 64 else (0.05, 0.275, 0.5)
+
+
+def _normal_radial(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * 4n) float32 (float64 for float64 maps), n rings (``_radial_edges`` of the
+    face crop's side): per sample, ``metrics.radial_log_profile`` of the normals' x and y over the whole map, then over
+    ``data.face_square``'s crop, then their squares (``spread_loss``). ``regions`` is not used: the profiles are the whole map's and the
+    crop's. Network space: a log ratio of energies does not see the normals' scale."""
+    n = x[:, 4:6].to(torch.promote_types(x.dtype, torch.float32))
+    row, col, side = face_square(x.shape[-1])
+    edges = _radial_edges(side)  # the crop's: the same rings on both
+    face = n[..., row:row + side, col:col + side]
+    return _with_squares(torch.cat([radial_log_profile(n, edges).flatten(1),
+                                    radial_log_profile(face, edges).flatten(1)], 1))
+
+
 def _albedo_specular_link(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space, B >= 2 -> (B, k * 2): per region, the correlation of the linear albedo's finest band
     (mean of r, g, b) with the linear specular's (``metrics.region_band_correlation``), then its squared deviation from
@@ -1615,7 +1646,7 @@ def spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor
 def _spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the gap of every ``spread_loss``
     term (screen, specular quantiles, range quantiles, eye flatness, brow profile, lip ring, grain evenness, specular
-    Sobel link, normal tilt, specular law, grain overlap)."""
+    Sobel link, normal tilt, specular law, grain overlap, normal radial)."""
     return float(_spread_z(running, target)[0].abs().mean())
 
 
@@ -2025,7 +2056,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "specular_sobel": lambda x, regions: _specular_sobel(x, regions, gan),
             "normal_spectrum": _normal_spectra,
             "normal_tilt": lambda x, regions: _normal_tilt(x, regions, gan),
-            "specular_law": lambda x, regions: _specular_law(x, regions, gan), "grain_overlap": _grain_overlap}
+            "specular_law": lambda x, regions: _specular_law(x, regions, gan), "grain_overlap": _grain_overlap,
+            "normal_radial": _normal_radial}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -2037,7 +2069,7 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # hairline_share, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope, forehead_rows,
 # albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and mouth_rows: mean
 # |running - target|; screen, specular_quantile, range_quantile, eye_flat, brow_profile, lip_ring, grain_evenness,
-# specular_sobel, normal_tilt, specular_law and grain_overlap: mean |gap| in the data's spreads
+# specular_sobel, normal_tilt, specular_law, grain_overlap and normal_radial: mean |gap| in the data's spreads
 # (``_spread_gap``); texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
@@ -2063,7 +2095,7 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "specular_sobel": (spread_loss, _spread_gap),
                   "normal_spectrum": (spectrum_loss, _spectrum_gap),
                   "normal_tilt": (spread_loss, _spread_gap), "specular_law": (spread_loss, _spread_gap),
-                  "grain_overlap": (spread_loss, _spread_gap)}
+                  "grain_overlap": (spread_loss, _spread_gap), "normal_radial": (spread_loss, _spread_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
