@@ -4501,6 +4501,55 @@ def test_normal_radial_measure_and_pull(tmp_path):
     _check_spread_pull("normal_radial", _normal_radial, regions, tmp_path, 0.5, beta=0.5)
 
 
+def test_sheet_radial_measure_and_pull(tmp_path):
+    """The sheet maps are the blind test's sheet before its 8-bit rounding (the albedo's luminance, the specular's
+    channel, the normals' x and y); the sheet-radial measure is ``radial_log_profile`` of them over the whole map, then
+    the face's crop, then the squares; it sees the specular, unlike the normal-radial measure; the pull; refusals."""
+    from fitme_cli.reflectance.gan.blind import _triplets
+    from fitme_cli.reflectance.gan.metrics import radial_log_profile
+    from fitme_cli.reflectance.gan.train import _sheet_radial, sheet_maps
+
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    x[:, 3] = x[:, 3].abs() * 0.3 - 0.2  # a specular within 8 stored bits' reach
+    maps = sheet_maps(x, TINY)
+    assert maps.shape == (4, 4, 16, 16) and 0 <= float(maps.min()) and float(maps.max()) <= 1
+    sheet = torch.from_numpy(_triplets(GanImages.split(x), G=Generator(TINY))).double() / 255  # (B, R, 3R, 3)
+    shown = torch.stack([sheet[..., :16, :].mean(-1), sheet[..., 16:32, 0], sheet[..., 32:, 0], sheet[..., 32:, 1]], 1)
+    assert float((maps.double() - shown).abs().amax((0, 2, 3))[[0, 2, 3]].max()) <= 0.6 / 255 + 1e-6  # 8-bit rounding
+    assert float((maps.double() - shown)[:, 1].abs().max()) < 0.08  # the sheet's specular went through 8 linear bits
+    want = radial_log_profile(maps, (0.05, 0.275, 0.5)).flatten(1)
+    got = _sheet_radial(x, regions, TINY)
+    assert got.shape == (4, 32)
+    torch.testing.assert_close(got, torch.cat([want, want, want.square(), want.square()], 1))
+    other = x.clone()
+    other[:, 3] = torch.randn(4, 16, 16).clamp(-1, 1)
+    assert not torch.allclose(_sheet_radial(other, regions, TINY), got)
+    # a profile's rings share one total, so all of them cannot move up together (``_check_spread_pull``'s targets):
+    # the target tilts each profile by a spread, towards its fine ring (sign 1) or its coarse one (-1)
+    measure = lambda v, r: _sheet_radial(v, r, TINY)  # noqa: E731
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def moved(weight, sign):
+        def target_of(base):
+            m, sq = base.chunk(2)
+            sd = (sq - m.square()).clamp_min(0).sqrt().clamp_min(1e-3)
+            d = torch.where(torch.arange(len(m)) % 2 == 1, 1.0, -1.0) * sign
+            return torch.cat([m + d * sd, sd.square() + (m + d * sd).square()])
+
+        base, now, out = _pulled("sheet_radial", weight, measure, target_of, regions, _tiny_data(), z, 0.5)
+        m, sq = base.chunk(2)
+        sd = (sq - m.square()).clamp_min(0).sqrt().clamp_min(1e-3)
+        d = torch.where(torch.arange(len(m)) % 2 == 1, 1.0, -1.0) * sign
+        return float(((now.chunk(2)[0] - m) / sd * d).mean()), out
+
+    for sign in (1, -1):
+        (off, l_off), (on, l_on) = moved(0.0, sign), moved(0.5, sign)
+        assert on > off + 0.05, (sign, on, off)
+        assert "sheet_radial_gap" not in l_off[0] and 0.7 <= l_on[0]["sheet_radial_gap"] <= 1.3, l_on[0]
+    _assert_region_term_refusals("sheet_radial", _tiny_data(), tmp_path)
+
+
 def test_corner_log_ratio_known_values_reference_gradients_and_bad_input():
     """White noise ~0; a diagonal checkerboard over faint noise far above, while a checkerboard of columns (energy at
     the u Nyquist, v 0: outside the block) stays ~0 though ``nyquist_log_ratio`` sees both; per channel; a scale and an
@@ -4865,7 +4914,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -4953,6 +5002,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "grain_overlap_gap" not in lines[0]
     assert state.train.normal_radial_weight == 0.5 and lines[-1]["normal_radial_gap"] > 0
     assert "normal_radial_gap" not in lines[0]
+    assert state.train.sheet_radial_weight == 0.5 and lines[-1]["sheet_radial_gap"] > 0
+    assert "sheet_radial_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -5130,7 +5181,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "brow_profile", "lip_ring_log_luminance", "grain_evenness_by_region",
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
                       "normal_tilt_by_region", "specular_law_by_region",
-                      "grain_overlap_by_region", "normal_radial_profile"}
+                      "grain_overlap_by_region", "normal_radial_profile",
+                      "sheet_radial_profile"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5346,6 +5398,11 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
         assert list(side) == ["ring_median_db", "finest_db"] and len(side["ring_median_db"]) == 2, side
         assert all(np.isfinite(side["ring_median_db"])) and side["finest_db"] == sorted(side["finest_db"]), side
     assert any(side["ring_median_db"][0] != 0 for v in radial.values() for a in v.values() for side in a.values())
+    sheet = m["sheet_radial_profile"]  # the same rows for the four sheet maps
+    assert list(sheet) == ["map", "face"] and all(
+        list(v) == ["albedo_luminance", "specular", "normal_x", "normal_y"] for v in sheet.values())
+    assert all(list(side) == ["ring_median_db", "finest_db"] and side["finest_db"] == sorted(side["finest_db"])
+               for v in sheet.values() for a in v.values() for side in a.values()), sheet
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

@@ -29,9 +29,9 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
-                    _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows, _normal_radial,
-                    _normal_spectra, _normal_symmetry, _relief_bands, _texel_neighbour, _tilt_and_flat, copy_generator,
-                    load_checkpoint, sheet_ranges)
+                    _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
+                    _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial, _texel_neighbour,
+                    _tilt_and_flat, copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -173,6 +173,9 @@ class _Side:
     # (N, 2, 2, n) per sample the normal-radial term's measure (``train._normal_radial``): over the whole map, then the
     # face's crop, the normals' x's (then y's) log energy per ring of ``train._radial_edges`` over the rings' mean
     normal_radial: torch.Tensor
+    # (N, 2, 4, n) per sample the sheet-radial term's measure (``train._sheet_radial``): the same for the four maps as
+    # the sheet shows them (``train.sheet_maps``: albedo luminance, specular, normals x, normals y)
+    sheet_radial: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -188,7 +191,19 @@ _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ri
                "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
                "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law",
-               "grain_overlap", "normal_radial")
+               "grain_overlap", "normal_radial", "sheet_radial")
+
+
+def _radial_rows(gan: torch.Tensor, real: torch.Tensor, maps: tuple[str, ...]) -> dict:
+    """(N, 2, len(maps), n) per-sample ring profiles (natural log; whole map, then the face's crop) per side -> per crop
+    and map, per side the median over samples of each ring in dB and the 10th, 50th and 90th percentiles of the finest
+    ring's."""
+    db = 10 / np.log(10)
+    return {crop: {name: {side: {"ring_median_db": [round(float(v) * db, 2) for v in m[:, c, a].median(0).values],
+                                 "finest_db": [round(v * db, 2) for v in _quantiles(m[:, c, a, -1], (0.1, 0.5, 0.9))]}
+                          for side, m in (("data", real), ("gan", gan))}
+                   for a, name in enumerate(maps)}
+            for c, crop in enumerate(("map", "face"))}
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -397,6 +412,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "specular_law": torch.cat([law.flatten(2), hair_tone[..., None]], 2),
             "grain_overlap": _grain_overlap(net, regions)[:, :len(region_labels(regions)) * 2].view(len(x), -1, 2),
             "normal_radial": _normal_radial(net, regions).chunk(2, 1)[0].view(len(x), 2, 2, -1),
+            "sheet_radial": _sheet_radial(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 4, -1),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -661,14 +677,10 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # the normals' finest ring short of energy (the 363.08 kimg judge V): over the whole map and the face's crop, per
         # axis, the median over samples of each ring's log energy over the rings' mean (``train._normal_radial``), in
         # dB, and the 10th, 50th and 90th percentiles of the finest ring's
-        "normal_radial_profile": {
-            crop: {axis: {side: {"ring_median_db": [round(float(v), 2) for v in
-                                                    m.normal_radial[:, c, a].median(0).values * (10 / np.log(10))],
-                                 "finest_db": [round(v * 10 / np.log(10), 2) for v in
-                                               _quantiles(m.normal_radial[:, c, a, -1], (0.1, 0.5, 0.9))]}
-                          for side, m in (("data", real), ("gan", gan))}
-                   for a, axis in enumerate(("normal_x", "normal_y"))}
-            for c, crop in enumerate(("map", "face"))},
+        "normal_radial_profile": _radial_rows(gan.normal_radial, real.normal_radial, ("normal_x", "normal_y")),
+        # the same on the four maps as the blind test's sheet shows them (the 365.00 kimg judges X and Y)
+        "sheet_radial_profile": _radial_rows(gan.sheet_radial, real.sheet_radial,
+                                             ("albedo_luminance", "specular", "normal_x", "normal_y")),
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
