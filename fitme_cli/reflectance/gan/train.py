@@ -1356,14 +1356,19 @@ def _radial_edges(resolution: int) -> tuple[float, ...]:
 
 def _normal_radial(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2 * 4n) float32 (float64 for float64 maps), n rings (``_radial_edges`` of the
-    face crop's side): per sample, ``metrics.radial_log_profile`` of the normals' x and y over the whole map, then over
-    ``data.face_square``'s crop, then their squares (``spread_loss``). ``regions`` is not used: the profiles are the whole map's and the
-    crop's. Network space: a log ratio of energies does not see the normals' scale."""
-    n = x[:, 4:6].to(torch.promote_types(x.dtype, torch.float32))
-    row, col, side = face_square(x.shape[-1])
-    edges = _radial_edges(side)  # the crop's: the same rings on both
-    face = n[..., row:row + side, col:col + side]
-    return _with_squares(torch.cat([radial_log_profile(n, edges).flatten(1),
+    face crop's side): ``_map_and_face_profiles`` of the normals' x and y. ``regions`` is not used. Network space: a
+    log ratio of energies does not see the normals' scale."""
+    return _map_and_face_profiles(x[:, 4:6].to(torch.promote_types(x.dtype, torch.float32)))
+
+
+def _map_and_face_profiles(maps: torch.Tensor) -> torch.Tensor:
+    """(B, C, R, R) -> (B, 2 * 2Cn): per sample, ``metrics.radial_log_profile`` of each map over the whole map, then
+    over ``data.face_square``'s crop, both in the crop's rings (``_radial_edges``), then their squares
+    (``spread_loss``): the radial terms' measure."""
+    row, col, side = face_square(maps.shape[-1])
+    edges = _radial_edges(side)
+    face = maps[..., row:row + side, col:col + side]
+    return _with_squares(torch.cat([radial_log_profile(maps, edges).flatten(1),
                                     radial_log_profile(face, edges).flatten(1)], 1))
 
 
@@ -1372,24 +1377,15 @@ def sheet_maps(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
     ``blind``'s sheet shows them, before its 8-bit rounding: the sRGB albedo's luminance (mean of r, g, b), the
     specular x3 in sRGB (not first stored in 8 linear bits as the sheet's), the unit normals' x and y as 2.5 n + 0.5,
     clamped (the clamp holds 6-9 % of the data's texels: its harmonics are part of what a judge sees)."""
-    x = x.to(torch.promote_types(x.dtype, torch.float32))
-    albedo = ((x[:, :3] + 1) / 2).clamp(0, 1).mean(1, keepdim=True)
-    specular = linear_to_srgb((3 * decode_specular(x[:, 3:4], s)).clamp(0, 1))
-    normals = (2.5 * decode_maps(GanImages.split(x), s).normals[:, :2] + 0.5).clamp(0, 1)
-    return torch.cat([albedo, specular, normals], 1)
+    albedo, specular, normals = _sheet_parts(x.to(torch.promote_types(x.dtype, torch.float32)), s)
+    return torch.cat([albedo.mean(1, keepdim=True), specular, (normals + 0.5).clamp(0, 1)], 1)
 
 
 def _sheet_radial(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2 * 8n) float32 (float64 for float64 maps), n rings (``_radial_edges`` of the
-    face crop's side): per sample, ``metrics.radial_log_profile`` of the four ``sheet_maps`` over the whole map, then
-    over ``data.face_square``'s crop, then their squares (``spread_loss``). ``regions`` is not used. ``s``: the
+    face crop's side): ``_map_and_face_profiles`` of the four ``sheet_maps``. ``regions`` is not used. ``s``: the
     specular's and normals' decoding."""
-    maps = sheet_maps(x, s)
-    row, col, side = face_square(x.shape[-1])
-    edges = _radial_edges(side)
-    face = maps[..., row:row + side, col:col + side]
-    return _with_squares(torch.cat([radial_log_profile(maps, edges).flatten(1),
-                                    radial_log_profile(face, edges).flatten(1)], 1))
+    return _map_and_face_profiles(sheet_maps(x, s))
 
 
 def _albedo_specular_link(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
@@ -1540,16 +1536,22 @@ def _specular_quantiles(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) 
     return _with_squares(region_quantiles(specular, regions, _SPECULAR_QUANTILES).flatten(1))
 
 
+def _sheet_parts(x: torch.Tensor, s: GanSettings) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(B, 7, R, R) network space -> the maps as ``blind``'s sheet draws them, in its display units (1 = 255 levels),
+    before its offsets, clamps and 8-bit rounding: the sRGB albedo (B, 3, R, R), the specular x3 in sRGB (B, 1, R, R),
+    the unit normals' x and y x2.5 (B, 2, R, R). ``s``: the specular's and normals' decoding."""
+    albedo = ((x[:, :3] + 1) / 2).clamp(0, 1)
+    specular = linear_to_srgb((3 * decode_specular(x[:, 3:4], s)).clamp(0, 1))
+    return albedo, specular, 2.5 * decode_maps(GanImages.split(x), s).normals[:, :2]
+
+
 def sheet_ranges(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 3, R, R) float32, >= 0, in the sheet's display units (1 = 255 levels):
     ``metrics.local_range`` (3 x 3) of the maps as ``blind`` shows them: the sRGB albedo (the largest over r, g, b), the
     specular x3 in sRGB, the unit normals' x and y x2.5 (the larger; not clamped as the sheet's 2.5 n + 0.5: the data's
     flat crescent is |n| ~0.003, not a clamp). Not rounded to 8 bits as the sheet is: G's ranges read up to one level
     above what the sheet would show."""
-    x = x.float()
-    albedo = ((x[:, :3] + 1) / 2).clamp(0, 1)
-    specular = linear_to_srgb((3 * decode_specular(x[:, 3:4], s)).clamp(0, 1))
-    normals = 2.5 * decode_maps(GanImages.split(x), s).normals[:, :2]
+    albedo, specular, normals = _sheet_parts(x.float(), s)
     return torch.cat([local_range(albedo).amax(1, keepdim=True), local_range(specular),
                       local_range(normals).amax(1, keepdim=True)], 1)
 
