@@ -4501,6 +4501,54 @@ def test_normal_radial_measure_and_pull(tmp_path):
     _check_spread_pull("normal_radial", _normal_radial, regions, tmp_path, 0.5, beta=0.5)
 
 
+def test_texel_phase_known_values_parity_gradients_and_bad_input():
+    from fitme_cli.reflectance.gan.metrics import texel_lattice, texel_phase
+
+    r = 17  # 16 steps: four whole periods, so the parities are the groups' 0 + 2 over 1 + 3
+    steps = torch.tensor([3.0 if k % 4 == 0 else 1.0 for k in range(r - 1)], dtype=torch.float64)
+    rows = torch.cat([torch.zeros(1, dtype=torch.float64), steps.cumsum(0)])
+    x = torch.stack([rows[:, None].expand(r, r), torch.arange(r, dtype=torch.float64)[None, :].expand(r, r)])[None]
+    got = texel_phase(x)
+    assert got.shape == (1, 2, 2, 4)
+    want_rows = torch.tensor([3.0, 1.0, 1.0, 1.0], dtype=torch.float64) / 1.5
+    torch.testing.assert_close(got[0, 0, 0], want_rows, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(got[0, 0, 1], torch.ones(4, dtype=torch.float64), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(got[0, 1], torch.ones(2, 4, dtype=torch.float64), atol=1e-5, rtol=1e-5)
+    rnd = torch.randn(2, 3, r, r, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ph, lat = texel_phase(rnd), texel_lattice(rnd)
+    for axis in range(2):  # period 4 holds texel_lattice's parity
+        g = ph[:, :, axis]
+        torch.testing.assert_close((g[..., 0] + g[..., 2]) / (g[..., 1] + g[..., 3]), lat[..., axis], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(texel_phase(rnd, 2)[:, :, 0, 0] / texel_phase(rnd, 2)[:, :, 0, 1], lat[..., 0], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(texel_phase(torch.zeros(1, 1, 8, 8)), torch.ones(1, 1, 2, 4))
+    torch.testing.assert_close(texel_phase(3 * rnd + 2), ph)  # blind to scale and offset
+    assert torch.autograd.gradcheck(texel_phase, (rnd[:1, :1, :9, :9].clone().requires_grad_(),))
+    for bad in (torch.zeros(1, 8, 8), torch.zeros(1, 1, 8, 9), torch.zeros(1, 1, 4, 4),
+                torch.zeros(1, 1, 8, 8, dtype=torch.long)):
+        with pytest.raises(ValueError, match="expected float"):
+            texel_phase(bad)
+    with pytest.raises(ValueError, match="period 1"):
+        texel_phase(rnd, 1)
+
+
+def test_lattice_phase_measure_and_pull(tmp_path):
+    """The lattice-phase measure is the log of ``texel_phase`` of every channel (network space), then the squares; the
+    pull; refusals as every term's."""
+    from fitme_cli.reflectance.gan.metrics import texel_phase
+    from fitme_cli.reflectance.gan.train import _lattice_phase
+
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    want = texel_phase(x).log().flatten(1)
+    got = _lattice_phase(x, regions)
+    assert got.shape == (4, 2 * 56)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    other = x.clone()
+    other[:, 4:6] += 0.1 * torch.arange(16.0)[:, None]  # a steeper ramp in the normals' rows changes their phases
+    assert not torch.allclose(_lattice_phase(other, regions)[:, 32:48], got[:, 32:48])
+    _check_spread_pull("lattice_phase", _lattice_phase, regions, tmp_path, 0.5, beta=0.5)
+
+
 def test_sheet_radial_measure_and_pull(tmp_path):
     """The sheet maps are the blind test's sheet before its 8-bit rounding (the albedo's luminance, the specular's
     channel, the normals' x and y); the sheet-radial measure is ``radial_log_profile`` of them over the whole map, then
@@ -4914,7 +4962,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5004,6 +5052,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "normal_radial_gap" not in lines[0]
     assert state.train.sheet_radial_weight == 0.5 and lines[-1]["sheet_radial_gap"] > 0
     assert "sheet_radial_gap" not in lines[0]
+    assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
+    assert "lattice_phase_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]

@@ -56,7 +56,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "specular_quantile_weight", "range_map_weight", "range_quantile_weight", "eye_flat_weight",
                 "brow_profile_weight", "lip_ring_weight", "grain_evenness_weight", "specular_sobel_weight",
                 "normal_spectrum_weight", "normal_tilt_weight", "specular_law_weight",
-                "grain_overlap_weight", "normal_radial_weight", "sheet_radial_weight",
+                "grain_overlap_weight", "normal_radial_weight", "sheet_radial_weight", "lattice_phase_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -309,6 +309,11 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
 @click.option("--sheet-radial-weight", type=click.FloatRange(min=0),
               help="The normal-radial term on all four maps as the blind test's sheet shows them (sRGB albedo, x3 "
                    "sRGB specular, clamped normals) (not in the paper; may change on --resume). [0]")
+@click.option("--lattice-phase-weight", type=click.FloatRange(min=0),
+              help="Pull each sample's texel lattice (the mean step between rows and columns by their index mod 4, "
+                   "every channel) to the data's in units of its spread: G's parities were off both ways from sample "
+                   "to sample, which the lattice term's batch mean cancels (not in the paper; may change on "
+                   "--resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")
