@@ -286,8 +286,7 @@ def texel_lattice(x: torch.Tensor) -> torch.Tensor:
     256^2), its edges per channel (docs/brdf_gan.md, "The lattice"). Differentiable almost everywhere."""
     if x.ndim != 4 or not x.is_floating_point() or x.shape[2] != x.shape[3] or x.shape[2] < 6:
         raise ValueError(f"expected float (N, C, R, R) maps with R >= 6, got {tuple(x.shape)} {x.dtype}")
-    rows = (x[:, :, 1:] - x[:, :, :-1]).abs().mean(3)  # (N, C, R - 1): step i is between rows i and i + 1
-    cols = (x[:, :, :, 1:] - x[:, :, :, :-1]).abs().mean(2)
+    rows, cols = _mean_steps(x)
     e = _LATTICE_EPS
 
     def parity(steps):
@@ -314,9 +313,14 @@ def texel_phase(x: torch.Tensor, period: int = 4) -> torch.Tensor:
         g = steps[..., :n].unflatten(-1, (n // period, period)).mean(-2) + _LATTICE_EPS
         return g / g.mean(-1, keepdim=True)
 
-    rows = (x[:, :, 1:] - x[:, :, :-1]).abs().mean(3)
-    cols = (x[:, :, :, 1:] - x[:, :, :, :-1]).abs().mean(2)
+    rows, cols = _mean_steps(x)
     return torch.stack([groups(rows), groups(cols)], 2)
+
+
+def _mean_steps(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, C, R, R) -> two (N, C, R - 1): the mean |step| between rows i and i + 1, then between columns: what
+    ``texel_lattice`` and ``texel_phase`` group."""
+    return (x[:, :, 1:] - x[:, :, :-1]).abs().mean(3), (x[:, :, :, 1:] - x[:, :, :, :-1]).abs().mean(2)
 
 
 def region_moments(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
