@@ -5233,7 +5233,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
                       "normal_tilt_by_region", "specular_law_by_region",
                       "grain_overlap_by_region", "normal_radial_profile",
-                      "sheet_radial_profile"}
+                      "sheet_radial_profile", "texel_phase_deviation"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5419,6 +5419,12 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert all(list(v) == ["row_parity", "column_parity", "top", "bottom", "left", "right"] for v in lattice.values())
     assert all(np.isfinite(p[k]) and p[k] > 0 for v in lattice.values() for p in v.values() for k in ("gan", "data"))
     assert all(0.8 < v[p]["data"] < 1.25 for v in list(lattice.values())[:3] for p in ("row_parity", "column_parity"))
+    phase = m["texel_phase_deviation"]  # per channel, axis and side: q10/50/90 of the largest |phase - 1|, at least 0
+    assert list(phase) == list(lattice) and all(list(v) == ["rows", "columns"] for v in phase.values())
+    assert all(list(q) == ["data", "gan"] and all(0 <= a[0] <= a[1] <= a[2] for a in q.values())
+               for v in phase.values() for q in v.values()), phase
+    # a few tiny maps are not lattice-free to the texel; the two sides are measured apart
+    assert phase["albedo_r"]["rows"]["data"][1] > 0 and phase["albedo_r"]["rows"]["data"] != phase["albedo_r"]["rows"]["gan"]
     assert all(len(v) == 2 and all(0 <= c <= 1 for c in v) for r in coh.values() for v in r.values())
     spec = m["albedo_spectrum_tv_by_region"]  # only the regions with a whole 16^2 window at 64^2
     assert spec and set(spec) < set(coh) and "lips" not in spec
