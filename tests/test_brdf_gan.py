@@ -4550,6 +4550,33 @@ def test_lattice_phase_measure_and_pull(tmp_path):
     _check_spread_pull("lattice_phase", _lattice_phase, regions, tmp_path, 0.5, beta=0.5)
 
 
+def _check_profile_pull(name: str, measure, regions: torch.Tensor) -> None:
+    """A ``spread_loss`` term on log ring profiles (``name``, ``measure``): a profile's rings share one total, so all
+    of them cannot move up together (``_check_spread_pull``'s targets); the target tilts each profile by a spread,
+    towards its fine ring (sign 1) or its coarse one (-1), and with the term G's profiles end further along the tilt
+    than without it; the first step's gap is ~1 spread."""
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def moved(weight, sign):
+        def tilted(base):
+            m, sq = base.chunk(2)
+            sd = (sq - m.square()).clamp_min(0).sqrt().clamp_min(1e-3)
+            return m, sd, torch.where(torch.arange(len(m)) % 2 == 1, 1.0, -1.0) * sign
+
+        def target_of(base):
+            m, sd, d = tilted(base)
+            return torch.cat([m + d * sd, sd.square() + (m + d * sd).square()])
+
+        base, now, out = _pulled(name, weight, measure, target_of, regions, _tiny_data(), z, 0.5)
+        m, sd, d = tilted(base)
+        return float(((now.chunk(2)[0] - m) / sd * d).mean()), out
+
+    for sign in (1, -1):
+        (off, l_off), (on, l_on) = moved(0.0, sign), moved(0.5, sign)
+        assert on > off + 0.05, (sign, on, off)
+        assert f"{name}_gap" not in l_off[0] and 0.7 <= l_on[0][f"{name}_gap"] <= 1.3, l_on[0]
+
+
 def test_sheet_radial_measure_and_pull(tmp_path):
     """The sheet maps are the blind test's sheet before its 8-bit rounding (the albedo's luminance, the specular's
     channel, the normals' x and y); the sheet-radial measure is ``radial_log_profile`` of them over the whole map, then
@@ -4574,29 +4601,56 @@ def test_sheet_radial_measure_and_pull(tmp_path):
     other = x.clone()
     other[:, 3] = torch.randn(4, 16, 16).clamp(-1, 1)
     assert not torch.allclose(_sheet_radial(other, regions, TINY), got)
-    # a profile's rings share one total, so all of them cannot move up together (``_check_spread_pull``'s targets):
-    # the target tilts each profile by a spread, towards its fine ring (sign 1) or its coarse one (-1)
-    measure = lambda v, r: _sheet_radial(v, r, TINY)  # noqa: E731
-    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
-
-    def moved(weight, sign):
-        def target_of(base):
-            m, sq = base.chunk(2)
-            sd = (sq - m.square()).clamp_min(0).sqrt().clamp_min(1e-3)
-            d = torch.where(torch.arange(len(m)) % 2 == 1, 1.0, -1.0) * sign
-            return torch.cat([m + d * sd, sd.square() + (m + d * sd).square()])
-
-        base, now, out = _pulled("sheet_radial", weight, measure, target_of, regions, _tiny_data(), z, 0.5)
-        m, sq = base.chunk(2)
-        sd = (sq - m.square()).clamp_min(0).sqrt().clamp_min(1e-3)
-        d = torch.where(torch.arange(len(m)) % 2 == 1, 1.0, -1.0) * sign
-        return float(((now.chunk(2)[0] - m) / sd * d).mean()), out
-
-    for sign in (1, -1):
-        (off, l_off), (on, l_on) = moved(0.0, sign), moved(0.5, sign)
-        assert on > off + 0.05, (sign, on, off)
-        assert "sheet_radial_gap" not in l_off[0] and 0.7 <= l_on[0]["sheet_radial_gap"] <= 1.3, l_on[0]
+    _check_profile_pull("sheet_radial", lambda v, r: _sheet_radial(v, r, TINY), regions)
     _assert_region_term_refusals("sheet_radial", _tiny_data(), tmp_path)
+
+
+def test_strip_radial_and_strip_slope_link_measures_and_pull(tmp_path):
+    """The strip-radial measure is the mean ``radial_log_profile`` of the sheet maps' square tiles (a quarter of the
+    side, at least 16) on the top strip, then the bottom one, then the squares; the strip-slope-link measure is
+    ``region_slope_link`` (Sobel) of the sheet's specular and normals, both less a 5 x 5 box mean, on the top and bottom
+    quarters; neither reads the rows between; the pulls; refusals."""
+    from fitme_cli.reflectance.gan.metrics import radial_log_profile, region_slope_link
+    from fitme_cli.reflectance.gan.train import (_strip_labels, _strip_radial, _strip_side, _strip_slope_link,
+                                                 sheet_maps)
+
+    assert [_strip_side(r) for r in (16, 32, 64, 256, 512)] == [16, 16, 16, 64, 128]
+    labels = _strip_labels(64)
+    assert labels.dtype == torch.uint8 and (labels[:16] == 0).all() and (labels[48:] == 1).all()
+    assert (labels[16:48] == 255).all()
+    regions = _two_regions()
+    x = torch.randn(3, 7, 64, 64, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    maps = sheet_maps(x, TINY)
+    edges = (0.05, 0.275, 0.5)  # a 16^2 tile's rings
+    want = torch.stack([torch.stack([radial_log_profile(maps[..., rows, 16 * j:16 * j + 16], edges) for j in range(4)])
+                        .mean(0) for rows in (slice(0, 16), slice(48, 64))], 1).flatten(1)
+    got = _strip_radial(x, regions, TINY)
+    assert got.shape == (3, 2 * 2 * 4 * 2)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    box = lambda m: m - torch.nn.functional.avg_pool2d(m, 5, 1, 2, count_include_pad=False)  # noqa: E731
+    high = box(maps)
+    link = region_slope_link(high[:, 1:2], torch.cat([high[:, 2:], high[:, :1]], 1), labels, kernel="sobel")
+    got_link = _strip_slope_link(x, regions, TINY)
+    assert got_link.shape == (3, 8) and float(got_link[:, :4].abs().max()) <= 1
+    torch.testing.assert_close(got_link, torch.cat([link.flatten(1), link.flatten(1).square()], 1))
+    middle = x.clone()
+    middle[:, :, 24:40] = torch.randn(3, 7, 16, 64, generator=torch.Generator().manual_seed(1)).clamp(-1, 1)
+    torch.testing.assert_close(_strip_radial(middle, regions, TINY), got)
+    torch.testing.assert_close(_strip_slope_link(middle, regions, TINY), got_link)
+    bottom = x.clone()
+    bottom[:, 3:6, 48:] = torch.randn(3, 3, 16, 64, generator=torch.Generator().manual_seed(2)).clamp(-1, 1)
+    moved_radial, moved_link = _strip_radial(bottom, regions, TINY), _strip_slope_link(bottom, regions, TINY)
+    torch.testing.assert_close(moved_radial[:, :8], got[:, :8])  # the top strip's 4 maps' 2 rings
+    assert not torch.allclose(moved_radial[:, 8:16], got[:, 8:16])
+    torch.testing.assert_close(moved_link[:, :2], got_link[:, :2])
+    assert not torch.allclose(moved_link[:, 2:4], got_link[:, 2:4])
+    small = torch.randn(2, 7, 16, 16, generator=torch.Generator().manual_seed(3)).clamp(-1, 1)
+    assert _strip_radial(small, regions, TINY).shape == (2, 32)  # one 16^2 tile, the whole map, per strip
+    _check_profile_pull("strip_radial", lambda v, r: _strip_radial(v, r, TINY), regions)
+    _check_spread_pull("strip_slope_link", lambda v, r: _strip_slope_link(v, r, TINY), regions, tmp_path, 0.5,
+                       beta=0.5)
+    _assert_region_term_refusals("strip_radial", _tiny_data(), tmp_path)
+    _assert_region_term_refusals("strip_slope_link", _tiny_data(), tmp_path)
 
 
 def test_corner_log_ratio_known_values_reference_gradients_and_bad_input():
@@ -4963,7 +5017,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5055,6 +5109,9 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "sheet_radial_gap" not in lines[0]
     assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
     assert "lattice_phase_gap" not in lines[0]
+    for term in ("strip_radial", "strip_slope_link"):
+        assert getattr(state.train, f"{term}_weight") == 0.5 and lines[-1][f"{term}_gap"] > 0
+        assert f"{term}_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
     assert (state.train.patch_weight, state.train.patch_count, state.train.patch_r1_gamma) == (0.5, 2, 0.1)
     assert state.D_patch.size == 8 and lines[-1]["loss_patch_d"] > 0 and "loss_patch_d" not in lines[0]
@@ -5233,7 +5290,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
                       "normal_tilt_by_region", "specular_law_by_region",
                       "grain_overlap_by_region", "normal_radial_profile",
-                      "sheet_radial_profile", "texel_phase_deviation"}
+                      "sheet_radial_profile", "texel_phase_deviation", "strip_radial_profile", "strip_slope_link"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5460,6 +5517,16 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
         list(v) == ["albedo_luminance", "specular", "normal_x", "normal_y"] for v in sheet.values())
     assert all(list(side) == ["ring_median_db", "finest_db"] and side["finest_db"] == sorted(side["finest_db"])
                for v in sheet.values() for a in v.values() for side in a.values()), sheet
+    strip = m["strip_radial_profile"]  # the same rows for the top and bottom strips
+    assert list(strip) == ["top", "bottom"] and all(list(v) == list(sheet["map"]) for v in strip.values()), strip
+    assert all(list(side) == ["ring_median_db", "finest_db"] and side["finest_db"] == sorted(side["finest_db"])
+               and all(np.isfinite(side["ring_median_db"])) for v in strip.values() for a in v.values()
+               for side in a.values()), strip
+    link = m["strip_slope_link"]  # per strip and axis, per side the quantiles of a correlation
+    assert list(link) == ["top", "bottom"] and all(list(v) == ["u", "v"] for v in link.values()), link
+    assert all(list(q) == ["data", "gan"] and all(-1 <= p[0] <= p[1] <= p[2] <= 1 for p in q.values())
+               for v in link.values() for q in v.values()), link
+    assert any(p[1] != 0 for v in link.values() for q in v.values() for p in q.values()), link
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

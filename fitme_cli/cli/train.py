@@ -57,6 +57,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "brow_profile_weight", "lip_ring_weight", "grain_evenness_weight", "specular_sobel_weight",
                 "normal_spectrum_weight", "normal_tilt_weight", "specular_law_weight",
                 "grain_overlap_weight", "normal_radial_weight", "sheet_radial_weight", "lattice_phase_weight",
+                "strip_radial_weight", "strip_slope_link_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -314,6 +315,14 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
                    "every channel) to the data's in units of its spread: G's parities were off both ways from sample "
                    "to sample, which the lattice term's batch mean cancels (not in the paper; may change on "
                    "--resume). [0]")
+@click.option("--strip-radial-weight", type=click.FloatRange(min=0),
+              help="The sheet-radial term on the top quarter (the top of the scalp) and the bottom quarter (the neck "
+                   "and body) apart, each the mean of its square tiles' rings (not in the paper; may change on "
+                   "--resume). [0]")
+@click.option("--strip-slope-link-weight", type=click.FloatRange(min=0),
+              help="On the same two strips, pull how closely the sheet's normals follow the sheet's specular's Sobel "
+                   "slopes, both less a 5x5 box mean, to the data's in units of its spread (not in the paper; may "
+                   "change on --resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

@@ -31,8 +31,8 @@ from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
                     _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
-                    _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial, _texel_neighbour,
-                    _tilt_and_flat, copy_generator, load_checkpoint, sheet_ranges)
+                    _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial, _strip_radial,
+                    _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -180,6 +180,12 @@ class _Side:
     # (N, 2, 4, n) per sample the sheet-radial term's measure (``train._sheet_radial``): the same for the four maps as
     # the sheet shows them (``train.sheet_maps``: albedo luminance, specular, normals x, normals y)
     sheet_radial: torch.Tensor
+    # (N, 2, 4, n) per sample the strip-radial term's measure (``train._strip_radial``): the same on the top strip's
+    # tiles (the top of the scalp), then the bottom strip's (the neck and body)
+    strip_radial: torch.Tensor
+    # (N, 2, 2) per sample, on the top strip, then the bottom one, the correlation of the high-passed sheet specular's
+    # Sobel slopes along u and v with the high-passed sheet normals' x and y (``train._strip_slope_link``)
+    strip_slope_link: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -195,19 +201,21 @@ _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ri
                "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
                "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law",
-               "grain_overlap", "normal_radial", "sheet_radial", "lattice_phase")
+               "grain_overlap", "normal_radial", "sheet_radial", "lattice_phase",
+               "strip_radial", "strip_slope_link")
 
 
-def _radial_rows(gan: torch.Tensor, real: torch.Tensor, maps: tuple[str, ...]) -> dict:
-    """(N, 2, len(maps), n) per-sample ring profiles (natural log; whole map, then the face's crop) per side -> per crop
-    and map, per side the median over samples of each ring in dB and the 10th, 50th and 90th percentiles of the finest
-    ring's."""
+def _radial_rows(gan: torch.Tensor, real: torch.Tensor, maps: tuple[str, ...],
+                 crops: tuple[str, str] = ("map", "face")) -> dict:
+    """(N, 2, len(maps), n) per-sample ring profiles (natural log; by default the whole map, then the face's crop) per
+    side -> per crop and map, per side the median over samples of each ring in dB and the 10th, 50th and 90th
+    percentiles of the finest ring's."""
     db = 10 / np.log(10)
     return {crop: {name: {side: {"ring_median_db": [round(float(v) * db, 2) for v in m[:, c, a].median(0).values],
                                  "finest_db": [round(v * db, 2) for v in _quantiles(m[:, c, a, -1], (0.1, 0.5, 0.9))]}
                           for side, m in (("data", real), ("gan", gan))}
                    for a, name in enumerate(maps)}
-            for c, crop in enumerate(("map", "face"))}
+            for c, crop in enumerate(crops)}
 
 
 def _quantiles(values: torch.Tensor, qs: tuple[float, ...]) -> list[float]:
@@ -418,6 +426,8 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "grain_overlap": _grain_overlap(net, regions)[:, :len(region_labels(regions)) * 2].view(len(x), -1, 2),
             "normal_radial": _normal_radial(net, regions).chunk(2, 1)[0].view(len(x), 2, 2, -1),
             "sheet_radial": _sheet_radial(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 4, -1),
+            "strip_radial": _strip_radial(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 4, -1),
+            "strip_slope_link": _strip_slope_link(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 2),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -686,6 +696,16 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # the same on the four maps as the blind test's sheet shows them (the 365.00 kimg judges X and Y)
         "sheet_radial_profile": _radial_rows(gan.sheet_radial, real.sheet_radial,
                                              ("albedo_luminance", "specular", "normal_x", "normal_y")),
+        # the same on the top quarter (the top of the scalp) and the bottom one (the neck and body) apart, each the mean
+        # of its square tiles' (the 366.71 kimg judge AA2: the body's finest normals short, the hair's in excess)
+        "strip_radial_profile": _radial_rows(gan.strip_radial, real.strip_radial,
+                                             ("albedo_luminance", "specular", "normal_x", "normal_y"), ("top", "bottom")),
+        # on the same strips, how closely the high-passed sheet normals follow the high-passed sheet specular's Sobel
+        # slopes (the 366.71 kimg judge AA1): per strip and axis, the 10th, 50th and 90th percentiles over samples
+        "strip_slope_link": {strip: {axis: {side: _quantiles(m.strip_slope_link[:, t, a], (0.1, 0.5, 0.9))
+                                            for side, m in (("data", real), ("gan", gan))}
+                                     for a, axis in enumerate(("u", "v"))}
+                             for t, strip in enumerate(("top", "bottom"))},
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
