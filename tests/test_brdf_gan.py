@@ -2511,6 +2511,54 @@ def _hair_maps(n: int, albedo_of, seed: int = 0) -> torch.Tensor:
     return encode_maps(ReflectanceMaps(albedo_of(spec), spec, nrm), TINY).cat()
 
 
+def test_hair_law_tail_measure_known_values_gradients_and_pull(tmp_path):
+    """The hair-law-tail measure, over the hair only (scalp and hairline, either side): the sRGB albedo luminance in
+    bins of equal count by the specular's rank, the mean upper-edge blur (q99 - q90) / (q99 - q50 + 1/255) and the log
+    of the mean std (+ 1/255), then the squares. An albedo that is the specular's function (the data's dark hair) has
+    ~no blur and no spread; one drawn apart from it is blurred and spread; equal to a slow loop over the bins; the
+    forehead and the normals are not read; regions without hair are refused; float64 gradcheck; the pull; refusals."""
+    from fitme_cli.ops.srgb import linear_to_srgb
+    from fitme_cli.reflectance.gan.train import _TAIL_BINS, _hair_law_tail
+
+    regions = _hair_regions_map()
+    brown = torch.tensor([0.1, 0.06, 0.04])[None, :, None, None]
+    law = _hair_maps(4, lambda spec: brown * torch.exp(12.5 * (spec - 0.07)) * torch.linspace(0.5, 1.5, 4)[:, None, None, None])
+    got = _hair_law_tail(law, regions, TINY)
+    assert got.shape == (4, 4) and got.dtype == torch.float32
+    torch.testing.assert_close(got[:, 2:], got[:, :2].square())
+    # a curve of the specular: each bin's luminance spans at most a few sheet levels, so the blur sits well under 1
+    assert float(got[:, 0].max()) < 0.5 and float(got[:, 1].max()) < math.log(4 / 255), got
+    drawn = _hair_maps(4, lambda spec: 0.05 + 0.1 * torch.rand(4, 3, 16, 16, generator=torch.Generator().manual_seed(3)))
+    loose = _hair_law_tail(drawn, regions, TINY)
+    assert float(loose[:, 1].min()) > float(got[:, 1].max()) + 1, (loose, got)  # the spread: e times the law's, and more
+    # the slow reference: per sample, sort the hair's texels by specular, cut into bins, take the quantiles
+    maps = decode_maps(GanImages.split(drawn), TINY)
+    lum = linear_to_srgb(maps.albedo.clamp(0, 1)).mean(1)
+    hair = (regions == 0) | (regions == 8) | (regions == 16)
+    for i in range(4):
+        v, spec = lum[i][hair], maps.specular[i, 0][hair]
+        ordered = v[spec.argsort()][: len(v) // _TAIL_BINS * _TAIL_BINS].view(_TAIL_BINS, -1)
+        blurs, sds = [], []
+        for b in ordered:
+            q50, q90, q99 = (float(torch.quantile(b, q)) for q in (0.5, 0.9, 0.99))
+            blurs.append((q99 - q90) / (q99 - q50 + 1 / 255))
+            sds.append(float(b.std()))
+        assert abs(float(loose[i, 0]) - np.mean(blurs)) < 1e-5 and abs(float(loose[i, 1]) - math.log(np.mean(sds) + 1 / 255)) < 1e-5
+    other = drawn.clone()
+    other[:, 4:7] = torch.randn(4, 3, 16, 16)
+    other[:, :4] = torch.where(torch.as_tensor(regions == 2), -drawn[:, :4], drawn[:, :4])  # the forehead's texels
+    torch.testing.assert_close(_hair_law_tail(other, regions, TINY), loose)
+    with pytest.raises(ValueError, match=r"expected regions with scalp or hairline texels .* got labels \[2, 7\]"):
+        _hair_law_tail(drawn, _two_regions(), TINY)
+    albedo = drawn[:2, :3].double().requires_grad_()
+    rest = drawn[:2, 3:].double()
+    assert torch.autograd.gradcheck(lambda t: _hair_law_tail(torch.cat([t, rest], 1), regions, TINY), (albedo,),
+                                    eps=1e-6, atol=1e-4)
+    _check_spread_pull("hair_law_tail", lambda y, r_: _hair_law_tail(y, r_, TINY), regions, tmp_path, 0.5, beta=0.5,
+                       first_gap=(0.5, 2.0))
+    _assert_region_term_refusals("hair_law_tail", _tiny_data(), tmp_path)
+
+
 def test_specular_law_measure_and_pull(tmp_path):
     """The specular-law measure is, per hair region (scalp and hairline, either side; the forehead left out), the Fisher
     z of the correlation of the specular's two finest bands with the sRGB albedo's luminance and opponent axes, their
@@ -5017,7 +5065,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5109,7 +5157,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "sheet_radial_gap" not in lines[0]
     assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
     assert "lattice_phase_gap" not in lines[0]
-    for term in ("strip_radial", "strip_slope_link"):
+    for term in ("strip_radial", "strip_slope_link", "hair_law_tail"):
         assert getattr(state.train, f"{term}_weight") == 0.5 and lines[-1][f"{term}_gap"] > 0
         assert f"{term}_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
@@ -5290,7 +5338,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
                       "normal_tilt_by_region", "specular_law_by_region",
                       "grain_overlap_by_region", "normal_radial_profile",
-                      "sheet_radial_profile", "texel_phase_deviation", "strip_radial_profile", "strip_slope_link"}
+                      "sheet_radial_profile", "texel_phase_deviation", "strip_radial_profile", "strip_slope_link", "hair_law_tail"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5527,6 +5575,10 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert all(list(q) == ["data", "gan"] and all(-1 <= p[0] <= p[1] <= p[2] <= 1 for p in q.values())
                for v in link.values() for q in v.values()), link
     assert any(p[1] != 0 for v in link.values() for q in v.values() for p in q.values()), link
+    tail = m["hair_law_tail"]  # per part, per side the quantiles over samples
+    assert list(tail) == ["edge_blur", "log_spread"] and all(list(v) == ["data", "gan"] for v in tail.values()), tail
+    assert all(p[0] <= p[1] <= p[2] and np.isfinite(p).all() for v in tail.values() for p in v.values()), tail
+    assert all(0 <= p[0] and p[2] <= 1 for p in tail["edge_blur"].values()), tail
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

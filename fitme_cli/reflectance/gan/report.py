@@ -31,7 +31,7 @@ from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
                     _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
-                    _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial, _strip_radial,
+                    _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial, _strip_radial, _hair_law_tail,
                     _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
@@ -186,6 +186,9 @@ class _Side:
     # (N, 2, 2) per sample, on the top strip, then the bottom one, the correlation of the high-passed sheet specular's
     # Sobel slopes along u and v with the high-passed sheet normals' x and y (``train._strip_slope_link``)
     strip_slope_link: torch.Tensor
+    # (N, 2) per sample the hair-law-tail term's measure (``train._hair_law_tail``): the hair albedo's upper-edge blur
+    # and log spread in bins of the specular's rank
+    hair_law_tail: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -202,7 +205,7 @@ _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ri
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
                "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law",
                "grain_overlap", "normal_radial", "sheet_radial", "lattice_phase",
-               "strip_radial", "strip_slope_link")
+               "strip_radial", "strip_slope_link", "hair_law_tail")
 
 
 def _radial_rows(gan: torch.Tensor, real: torch.Tensor, maps: tuple[str, ...],
@@ -428,6 +431,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "sheet_radial": _sheet_radial(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 4, -1),
             "strip_radial": _strip_radial(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 4, -1),
             "strip_slope_link": _strip_slope_link(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 2),
+            "hair_law_tail": _hair_law_tail(net, regions, G.settings)[:, :2],
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -706,6 +710,11 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                                             for side, m in (("data", real), ("gan", gan))}
                                      for a, axis in enumerate(("u", "v"))}
                              for t, strip in enumerate(("top", "bottom"))},
+        # how tightly the hair's albedo follows its specular (the 369.26 kimg judge AB2): per part, the 10th, 50th and
+        # 90th percentiles over samples of the upper edge's blur and of the log spread in bins of the specular's rank
+        "hair_law_tail": {part: {side: _quantiles(m.hair_law_tail[:, i], (0.1, 0.5, 0.9))
+                                 for side, m in (("data", real), ("gan", gan))}
+                          for i, part in enumerate(("edge_blur", "log_spread"))},
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
