@@ -2518,7 +2518,7 @@ def test_hair_law_tail_measure_known_values_gradients_and_pull(tmp_path):
     ~no blur and no spread; one drawn apart from it is blurred and spread; equal to a slow loop over the bins; the
     forehead and the normals are not read; regions without hair are refused; float64 gradcheck; the pull; refusals."""
     from fitme_cli.ops.srgb import linear_to_srgb
-    from fitme_cli.reflectance.gan.train import _TAIL_BINS, _hair_law_tail
+    from fitme_cli.reflectance.gan.train import _LAW_TAIL_BINS, _hair_law_tail
 
     regions = _hair_regions_map()
     brown = torch.tensor([0.1, 0.06, 0.04])[None, :, None, None]
@@ -2537,7 +2537,7 @@ def test_hair_law_tail_measure_known_values_gradients_and_pull(tmp_path):
     hair = (regions == 0) | (regions == 8) | (regions == 16)
     for i in range(4):
         v, spec = lum[i][hair], maps.specular[i, 0][hair]
-        ordered = v[spec.argsort()][: len(v) // _TAIL_BINS * _TAIL_BINS].view(_TAIL_BINS, -1)
+        ordered = v[spec.argsort()][: len(v) // _LAW_TAIL_BINS * _LAW_TAIL_BINS].view(_LAW_TAIL_BINS, -1)
         blurs, sds = [], []
         for b in ordered:
             q50, q90, q99 = (float(torch.quantile(b, q)) for q in (0.5, 0.9, 0.99))
@@ -2548,7 +2548,7 @@ def test_hair_law_tail_measure_known_values_gradients_and_pull(tmp_path):
     other[:, 4:7] = torch.randn(4, 3, 16, 16)
     other[:, :4] = torch.where(torch.as_tensor(regions == 2), -drawn[:, :4], drawn[:, :4])  # the forehead's texels
     torch.testing.assert_close(_hair_law_tail(other, regions, TINY), loose)
-    with pytest.raises(ValueError, match=r"expected regions with scalp or hairline texels .* got labels \[2, 7\]"):
+    with pytest.raises(ValueError, match=r"_hair_law_tail: expected regions with scalp or hairline texels .* got labels \[2, 7\]"):
         _hair_law_tail(drawn, _two_regions(), TINY)
     albedo = drawn[:2, :3].double().requires_grad_()
     rest = drawn[:2, 3:].double()

@@ -31,8 +31,9 @@ from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
                     _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
-                    _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial, _strip_radial, _hair_law_tail,
-                    _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint, sheet_ranges)
+                    _hair_law_tail, _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial,
+                    _strip_radial, _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint,
+                    sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 

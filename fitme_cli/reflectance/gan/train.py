@@ -1351,13 +1351,14 @@ def _specular_law(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> tor
     return _with_squares(torch.cat([z, spread, _batch_covariance(lum, tone, "_specular_law")], 1))
 
 
-def _hair_regions(regions: torch.Tensor) -> torch.Tensor:
-    """(R, R) uint8 labels -> the same with every label but ``_HAIR_LABELS`` (on either side) unmapped (255)."""
+def _hair_regions(regions: torch.Tensor, measure: str = "_specular_law") -> torch.Tensor:
+    """(R, R) uint8 labels -> the same with every label but ``_HAIR_LABELS`` (on either side) unmapped (255).
+    ``measure`` names the caller in the error."""
     hair = torch.zeros_like(regions, dtype=torch.bool)
     for label in _HAIR_LABELS:
         hair |= (regions != 255) & (regions % SIDE_OFFSET == label)
     if not bool(hair.any()):
-        raise ValueError(f"_specular_law: expected regions with scalp or hairline texels (labels {_HAIR_LABELS}, "
+        raise ValueError(f"{measure}: expected regions with scalp or hairline texels (labels {_HAIR_LABELS}, "
                          f"either side), got labels {region_labels(regions)}")
     return torch.where(hair, regions, torch.full_like(regions, 255))
 
@@ -1376,33 +1377,33 @@ def _law_parts(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> tuple[
     return corr.clamp(-_LAW_CAP, _LAW_CAP).atanh(), region_moments(srgb[:, :1], regions)[:, :, 0, 0]
 
 
-_TAIL_BINS = 16  # the hair-law-tail term's specular bins, of equal count (~900 hair texels each at 256^2)
-_TAIL_QUANTILES = (0.5, 0.9, 0.99)
-_TAIL_EPS = 1 / 255  # one sheet level: the blur's and the spread's floor
+_LAW_TAIL_BINS = 16  # the hair-law-tail term's specular bins, of equal count (~900 hair texels each at 256^2)
+_LAW_TAIL_QUANTILES = (0.5, 0.9, 0.99)
+_LAW_TAIL_EPS = 1 / 255  # one sheet level: the blur's and the spread's floor
 
 
 def _hair_law_tail(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2 * 2) float32 (float64 for float64 maps): per sample, over the hair (the
     scalp and the hairline, either side: ``_hair_regions``), the sRGB albedo's luminance (mean of r, g, b, as the sheet
-    shows it) in ``_TAIL_BINS`` bins of equal count by the specular's rank: the mean over bins of the upper edge's blur
-    (q99 - q90) / (q99 - q50 + ``_TAIL_EPS``), and the log of the mean over bins of the luminance's std (+
-    ``_TAIL_EPS``), then their squares (``spread_loss``). The bins are the specular's ranks, so only the albedo is
+    shows it) in ``_LAW_TAIL_BINS`` bins of equal count by the specular's rank: the mean over bins of the upper
+    edge's blur (q99 - q90) / (q99 - q50 + ``_LAW_TAIL_EPS``), and the log of the mean over bins of the luminance's
+    std (+ ``_LAW_TAIL_EPS``), then their squares (``spread_loss``). The bins are the specular's ranks, so only the albedo is
     pulled: how tightly it follows the specular. The 369.26 kimg judge AB2's tell: in the data a hair's albedo is a
     curve of its specular (dark hair) or a cloud under a sharp upper edge (grey hair: ``skin_data``), where every G
     sample's edge was blurred (sheet, per 8-bit specular level: data 0.05-0.26, G 0.38-0.51) and dark hair's curve thick
     (std 0.010-0.023 against 0.001-0.002), which the specular-law term's band correlations do not see."""
     x = x.to(torch.promote_types(x.dtype, torch.float32))
-    hair = (_hair_regions(regions) != 255).to(x.device).flatten()
+    hair = (_hair_regions(regions, "_hair_law_tail") != 255).to(x.device).flatten()
     lum = linear_to_srgb(decode_albedo(x[:, :3]).clamp(0, 1)).mean(1).flatten(1)[:, hair]  # (B, N)
     specular = decode_specular(x[:, 3:4], s).flatten(1)[:, hair]
-    n = lum.shape[1] // _TAIL_BINS * _TAIL_BINS
-    if n < 2 * _TAIL_BINS:
-        raise ValueError(f"_hair_law_tail: expected at least {2 * _TAIL_BINS} hair texels, got {lum.shape[1]}")
+    n = lum.shape[1] // _LAW_TAIL_BINS * _LAW_TAIL_BINS
+    if n < 2 * _LAW_TAIL_BINS:
+        raise ValueError(f"_hair_law_tail: expected at least {2 * _LAW_TAIL_BINS} hair texels, got {lum.shape[1]}")
     order = specular.detach().argsort(1)[:, :n]  # ranks; the few top texels past n are dropped
-    binned = lum.gather(1, order).view(len(x), _TAIL_BINS, -1)  # (B, bins, n / bins)
-    q = torch.quantile(binned, torch.tensor(_TAIL_QUANTILES, dtype=x.dtype, device=x.device), dim=-1)  # (3, B, bins)
-    blur = ((q[2] - q[1]) / (q[2] - q[0] + _TAIL_EPS)).mean(1)
-    spread = (binned.std(-1).mean(1) + _TAIL_EPS).log()
+    binned = lum.gather(1, order).view(len(x), _LAW_TAIL_BINS, -1)  # (B, bins, n / bins)
+    q = torch.quantile(binned, torch.tensor(_LAW_TAIL_QUANTILES, dtype=x.dtype, device=x.device), dim=-1)  # (3, B, bins)
+    blur = ((q[2] - q[1]) / (q[2] - q[0] + _LAW_TAIL_EPS)).mean(1)
+    spread = (binned.std(-1).mean(1) + _LAW_TAIL_EPS).log()
     return _with_squares(torch.stack([blur, spread], 1))
 
 
@@ -1812,7 +1813,8 @@ def spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor
 def _spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the gap of every ``spread_loss``
     term (screen, specular quantiles, range quantiles, eye flatness, brow profile, lip ring, grain evenness, specular
-    Sobel link, normal tilt, specular law, grain overlap, normal radial, sheet radial, lattice phase, the strips', hair law tail)."""
+    Sobel link, normal tilt, specular law, grain overlap, normal radial, sheet radial, lattice phase, strip radial,
+    strip slope link, hair law tail)."""
     return float(_spread_z(running, target)[0].abs().mean())
 
 
