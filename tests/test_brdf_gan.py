@@ -4465,6 +4465,53 @@ def test_band_log_ratio_known_values_reference_gradients_and_bad_input():
         band_log_ratio(y.detach(), bands=((0.47, 0.48),))
 
 
+def test_axis_log_profile_known_values_reference_gradients_and_bad_input():
+    """White noise ~0 in every band along either axis; a wave at 0.42 cycle along u raises that band along u and not
+    along v; a scale and an offset change nothing; equal to a loop over numpy's row-by-row FFT (a 2-D Hann window,
+    energy by |u| summed over v); float64 gradients; bad input is refused."""
+    from fitme_cli.reflectance.gan.metrics import AXIS_EDGES, axis_log_profile
+
+    g = torch.Generator().manual_seed(0)
+    white = torch.randn(16, 1, 64, 64, generator=g, dtype=torch.float64)
+    got = axis_log_profile(white)
+    assert got.shape == (16, 1, 2, len(AXIS_EDGES) - 1) and float(got.mean((0, 1)).abs().max()) < 0.15
+    torch.testing.assert_close(axis_log_profile(3 * white + 1), got)
+    xx = torch.arange(64.0, dtype=torch.float64)
+    along_u = torch.cos(2 * math.pi * 0.42 * xx)[None, None, None, :].expand(16, 1, 64, 64) + 0.1 * white
+    got = axis_log_profile(along_u)[:, 0]
+    band = next(i for i, (lo, hi) in enumerate(zip(AXIS_EDGES[:-1], AXIS_EDGES[1:])) if lo <= 0.42 < hi)
+    far = [i for i in range(len(AXIS_EDGES) - 1) if abs(i - band) > 1]  # the window leaks into the next bins' bands
+    assert (got[:, 0].argmax(-1) == band).all() and (got[:, 0, band] > 1.2).all() and (got[:, 0, far] < -3).all()
+    assert float(got[:, 1].abs().max()) < 0.5  # along v the wave is the same in every row: a flat profile
+
+    x = torch.randn(2, 1, 32, 32, generator=g, dtype=torch.float64)
+    r, edges = 32, (0.25, 0.375, 0.5)
+    win = np.hanning(r + 1)[:r]  # periodic Hann
+    freq = np.abs(np.fft.fftfreq(r))
+    ref = []
+    for m in x[:, 0].numpy():
+        w = (m - m.mean()) * win[:, None] * win[None, :]
+        by_u = np.mean([np.abs(np.fft.fft(row)) ** 2 for row in np.fft.fft(w, axis=0)], 0)  # rows of the v spectrum
+        by_v = np.mean([np.abs(np.fft.fft(col)) ** 2 for col in np.fft.fft(w, axis=1).T], 0)
+        out = []
+        for e in (by_u, by_v):
+            bands = [[e[k] for k in range(r) if lo <= freq[k] < hi or (hi == 0.5 and freq[k] == 0.5)]
+                     for lo, hi in zip(edges[:-1], edges[1:])]
+            total = np.mean([v for b in bands for v in b])
+            out.append([np.log(np.mean(b) / total) for b in bands])
+        ref.append(out)
+    torch.testing.assert_close(axis_log_profile(x, edges)[:, 0], torch.tensor(ref, dtype=torch.float64))
+    y = torch.randn(1, 1, 16, 16, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: axis_log_profile(v, (0.25, 0.375, 0.5)), (y,))
+    for bad in (torch.zeros(1, 1, 15, 15), torch.zeros(1, 1, 8, 8)):
+        with pytest.raises(ValueError, match=r"expected an even R >= 16"):
+            axis_log_profile(bad)
+    with pytest.raises(ValueError, match=r"expected at least 2 increasing edges"):
+        axis_log_profile(white, (0.3, 0.2))
+    with pytest.raises(ValueError, match=r"holds no frequency at R 16"):
+        axis_log_profile(torch.zeros(1, 1, 16, 16), (0.4, 0.41, 0.5))
+
+
 def test_radial_log_profile_known_values_reference_gradients_and_bad_input():
     """White noise ~0 in every ring; a wave at 0.47 cycle along u raises the finest ring and not the one below; the same
     wave along the diagonal (radius 0.47 too) as well, unlike ``band_log_ratio``'s Chebyshev bands, which put it lower;
@@ -4651,6 +4698,31 @@ def test_sheet_radial_measure_and_pull(tmp_path):
     assert not torch.allclose(_sheet_radial(other, regions, TINY), got)
     _check_profile_pull("sheet_radial", lambda v, r: _sheet_radial(v, r, TINY), regions)
     _assert_region_term_refusals("sheet_radial", _tiny_data(), tmp_path)
+
+
+def test_sheet_axis_measure_and_pull(tmp_path):
+    """The sheet-axis measure is ``axis_log_profile`` of the sheet's normals (x along u and v, then y), then the
+    squares; it reads neither the albedo nor the specular; the default bands from 32^2 up; the pull; refusals."""
+    from fitme_cli.reflectance.gan.metrics import AXIS_EDGES, axis_log_profile
+    from fitme_cli.reflectance.gan.train import _axis_edges, _sheet_axis, sheet_maps
+
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    want = axis_log_profile(sheet_maps(x, TINY)[:, 2:], (0.25, 0.375, 0.5)).flatten(1)
+    got = _sheet_axis(x, regions, TINY)
+    assert got.shape == (4, 16)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    other = x.clone()
+    other[:, :4] = torch.randn(4, 4, 16, 16).clamp(-1, 1)
+    torch.testing.assert_close(_sheet_axis(other, regions, TINY), got)
+    moved = x.clone()
+    moved[:, 4] = torch.randn(4, 16, 16).clamp(-1, 1)
+    assert not torch.allclose(_sheet_axis(moved, regions, TINY), got)
+    assert _axis_edges(16) == (0.25, 0.375, 0.5) and _axis_edges(32) == _axis_edges(256) == AXIS_EDGES
+    big = torch.randn(2, 7, 32, 32, generator=torch.Generator().manual_seed(1)).clamp(-1, 1)
+    assert _sheet_axis(big, regions, TINY).shape == (2, 2 * 4 * (len(AXIS_EDGES) - 1))
+    _check_profile_pull("sheet_axis", lambda v, r: _sheet_axis(v, r, TINY), regions)
+    _assert_region_term_refusals("sheet_axis", _tiny_data(), tmp_path)
 
 
 def test_strip_radial_and_strip_slope_link_measures_and_pull(tmp_path):
@@ -5065,7 +5137,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5157,7 +5229,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "sheet_radial_gap" not in lines[0]
     assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
     assert "lattice_phase_gap" not in lines[0]
-    for term in ("strip_radial", "strip_slope_link", "hair_law_tail"):
+    for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis"):
         assert getattr(state.train, f"{term}_weight") == 0.5 and lines[-1][f"{term}_gap"] > 0
         assert f"{term}_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
@@ -5338,7 +5410,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "specular_sobel_by_region", "filter_fit_r2", "normal_spectrum_tv_by_region",
                       "normal_tilt_by_region", "specular_law_by_region",
                       "grain_overlap_by_region", "normal_radial_profile",
-                      "sheet_radial_profile", "texel_phase_deviation", "strip_radial_profile", "strip_slope_link", "hair_law_tail"}
+                      "sheet_radial_profile", "texel_phase_deviation", "strip_radial_profile", "strip_slope_link",
+                      "hair_law_tail", "sheet_axis_profile"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5579,6 +5652,11 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert list(tail) == ["edge_blur", "log_spread"] and all(list(v) == ["data", "gan"] for v in tail.values()), tail
     assert all(p[0] <= p[1] <= p[2] and np.isfinite(p).all() for v in tail.values() for p in v.values()), tail
     assert all(0 <= p[0] and p[2] <= 1 for p in tail["edge_blur"].values()), tail
+    axis = m["sheet_axis_profile"]  # along u and v, per axis of the normals, the ring rows on 1-D bands
+    assert list(axis) == ["along_u", "along_v"] and all(list(v) == ["normal_x", "normal_y"] for v in axis.values())
+    assert all(list(side) == ["ring_median_db", "finest_db"] and side["finest_db"] == sorted(side["finest_db"])
+               and np.isfinite(side["ring_median_db"]).all() and len(side["ring_median_db"]) >= 2
+               for v in axis.values() for a in v.values() for side in a.values()), axis
     normal = m["normal_spectrum_tv_by_region"]  # per axis, the same rows as the albedo's
     assert list(normal) == ["normal_x", "normal_y"] and all(set(v) == set(spec) for v in normal.values())
     for r in (*spec.values(), *m["specular_spectrum_tv_by_region"].values(), *(r for v in normal.values()

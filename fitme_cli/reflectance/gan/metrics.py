@@ -53,7 +53,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "region_edge_sharpness", "SLOPE_KERNELS", "region_slope_link", "filter_fit_r2", "row_profile",
            "hairline_edge_coherence",
            "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "TOP_BANDS", "band_log_ratio",
-           "RADIAL_EDGES", "radial_log_profile", "region_band_skew", "region_band_neighbour",
+           "RADIAL_EDGES", "radial_log_profile", "AXIS_EDGES", "axis_log_profile", "region_band_skew",
+           "region_band_neighbour",
            "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
@@ -619,6 +620,34 @@ def radial_log_profile(x: torch.Tensor, edges: tuple[float, ...] = RADIAL_EDGES)
     f = _windowed_power(x)
     ref = f[..., (radius >= edges[0]) & (radius < edges[-1])].mean(-1).clamp_min(1e-30)
     return torch.stack([(f[..., ring].mean(-1).clamp_min(1e-30) / ref).log() for ring in rings], -1)
+
+
+# ``axis_log_profile``'s default bands, cycles per texel along one axis: 1/32 wide from 5/16 up to Nyquist
+AXIS_EDGES = (10 / 32, 11 / 32, 12 / 32, 13 / 32, 14 / 32, 15 / 32, 16 / 32)
+
+
+def axis_log_profile(x: torch.Tensor, edges: tuple[float, ...] = AXIS_EDGES) -> torch.Tensor:
+    """x: (N, C, R, R) float, any units, R even and >= 16 -> (N, C, 2, len(edges) - 1): per sample and channel, along
+    u (columns' frequency, every v) and then along v (every u), the log of the mean FFT energy of the frequencies whose
+    |u| (or |v|) lies in [edges[i], edges[i + 1]) (a band ending at 1/2 includes Nyquist) over the mean energy of
+    all the bands' frequencies, the map Hann-windowed: a 1-D spectrum's shape along one axis, summed over the other,
+    as a row-by-row 1-D FFT gives it. ``radial_log_profile``'s rings mix the directions; a normal map's x varies most
+    along u and its y along v, and a notch there shows in one axis only.
+    The 372.22 kimg judge AC2's tell (docs/brdf_gan.md): on the sheet (``train.sheet_maps``, 48 maps at 256^2) the
+    normals x along u and y along v held a notch at 0.41-0.45 cycle and a spike at 0.453 that the data has not."""
+    r = _spectral_side(x, min_even=16)
+    if len(edges) < 2 or any(not 0 <= lo < hi <= 0.5 for lo, hi in zip(edges[:-1], edges[1:])):
+        raise ValueError(f"expected at least 2 increasing edges in [0, 1/2], got {edges}")
+    freq = torch.fft.fftfreq(r, dtype=torch.float64, device=x.device).abs()  # Nyquist is -1/2: |.| = 1/2
+    bands = [(freq >= lo) & ((freq < hi) | (hi == 0.5)) for lo, hi in zip(edges[:-1], edges[1:])]
+    for (lo, hi), band in zip(zip(edges[:-1], edges[1:]), bands):
+        if not band.any():
+            raise ValueError(f"the band ({lo}, {hi}) holds no frequency at R {r}")
+    whole = torch.stack(bands).any(0)
+    f = _windowed_power(x)
+    per_axis = torch.stack([f.mean(-2), f.mean(-1)], 2)  # (N, C, 2, R): energy by u (mean over v), by v (over u)
+    ref = per_axis[..., whole].mean(-1).clamp_min(1e-30)
+    return torch.stack([(per_axis[..., band].mean(-1).clamp_min(1e-30) / ref).log() for band in bands], -1)
 
 
 def reflectance_features(phys: torch.Tensor, regions: torch.Tensor) -> np.ndarray:

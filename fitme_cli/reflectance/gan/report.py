@@ -32,8 +32,8 @@ from .store import save_generator
 from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
                     _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
                     _hair_law_tail, _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial,
-                    _strip_radial, _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator, load_checkpoint,
-                    sheet_ranges)
+                    _sheet_axis, _strip_radial, _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator,
+                    load_checkpoint, sheet_ranges)
 
 __all__ = ["evaluate", "main"]
 
@@ -190,6 +190,9 @@ class _Side:
     # (N, 2) per sample the hair-law-tail term's measure (``train._hair_law_tail``): the hair albedo's upper-edge blur
     # and log spread in bins of the specular's rank
     hair_law_tail: torch.Tensor
+    # (N, 2, 2, n) per sample the sheet-axis term's measure (``train._sheet_axis``): along u, then along v, the sheet
+    # normals' x's (then y's) log energy per band of ``train._axis_edges`` over the bands' mean
+    sheet_axis: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -206,7 +209,7 @@ _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ri
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
                "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law",
                "grain_overlap", "normal_radial", "sheet_radial", "lattice_phase",
-               "strip_radial", "strip_slope_link", "hair_law_tail")
+               "strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis")
 
 
 def _radial_rows(gan: torch.Tensor, real: torch.Tensor, maps: tuple[str, ...],
@@ -433,6 +436,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "strip_radial": _strip_radial(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 4, -1),
             "strip_slope_link": _strip_slope_link(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 2),
             "hair_law_tail": _hair_law_tail(net, regions, G.settings)[:, :2],
+            "sheet_axis": _sheet_axis(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 2, -1).transpose(1, 2),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -716,6 +720,12 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         "hair_law_tail": {part: {side: _quantiles(m.hair_law_tail[:, i], (0.1, 0.5, 0.9))
                                  for side, m in (("data", real), ("gan", gan))}
                           for i, part in enumerate(("edge_blur", "log_spread"))},
+        # a notch in the sheet normals' 1-D spectrum just below Nyquist (the 372.22 kimg judge AC2): along u, then v,
+        # per axis of the normals, the median over samples of each band's log energy over the bands' mean in dB
+        # (``"ring_median_db"``: here 1/32-cycle bands of ``metrics.AXIS_EDGES``, not rings) and the 10th, 50th and
+        # 90th percentiles of the top band's
+        "sheet_axis_profile": _radial_rows(gan.sheet_axis, real.sheet_axis, ("normal_x", "normal_y"),
+                                           ("along_u", "along_v")),
         # a coloured band across the forehead (the 297.67 kimg judges): the log chromaticity's row profile over the
         # forehead (``metrics.row_profile``, the hairline band carved out), per axis (red-green, yellow-blue): the largest
         # |mean over samples| of a row, and the quantiles over samples of each sample's largest row |deviation|
