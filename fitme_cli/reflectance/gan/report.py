@@ -722,7 +722,7 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
                           for i, part in enumerate(("edge_blur", "log_spread"))},
         # a notch in the sheet normals' 1-D spectrum just below Nyquist (the 372.22 kimg judge AC2): along u, then v,
         # per axis of the normals, the median over samples of each band's log energy over the bands' mean in dB
-        # (``"ring_median_db"``: here 1/32-cycle bands of ``metrics.AXIS_EDGES``, not rings) and the 10th, 50th and
+        # (``"ring_median_db"``: here the 1/32-cycle bands of ``train._axis_edges``, not rings) and the 10th, 50th and
         # 90th percentiles of the top band's
         "sheet_axis_profile": _radial_rows(gan.sheet_axis, real.sheet_axis, ("normal_x", "normal_y"),
                                            ("along_u", "along_v")),
