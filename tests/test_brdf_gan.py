@@ -113,6 +113,55 @@ def test_generator_shapes_ranges_and_decoding():
         G(torch.randn(3, 7))
 
 
+def test_tilt_knee_known_values_reference_gradients_and_bad_input():
+    xy = torch.tensor([[0.3, 0.4], [0.03, 0.04], [0.0, 0.0], [-0.06, 0.08]]).T.reshape(1, 2, 2, 2)  # lengths .5 .05 0 .1
+    out = ops.tilt_knee(xy, 0.1, 0.2)
+    # at or below the knee scaled by the slope; above it, the length less 0.1 * 0.8 along the same direction
+    expected = torch.tensor([[0.3 * 0.42 / 0.5, 0.4 * 0.42 / 0.5], [0.006, 0.008], [0.0, 0.0], [-0.012, 0.016]]).T
+    torch.testing.assert_close(out, expected.reshape(1, 2, 2, 2))
+    assert ops.tilt_knee(xy, 0.0, 0.2) is xy  # off
+    lengths = torch.linspace(0, 0.3, 301, dtype=torch.float64)
+    new = ops.tilt_knee(torch.stack([lengths, torch.zeros_like(lengths)]).reshape(1, 2, 1, -1), 0.1, 0.2)[0, 0, 0]
+    assert (new.diff() > 0).all()  # monotone: no two tilts swap
+    torch.testing.assert_close(new.diff()[:100], torch.full((100,), 0.2e-3, dtype=torch.float64))  # slope below
+    torch.testing.assert_close(new.diff()[100:], torch.full((200,), 1e-3, dtype=torch.float64))  # and 1 above
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 2, 5, 5, generator=g, dtype=torch.float64) * 0.1
+    torch.testing.assert_close(ops.tilt_knee(x, 0.1, 0.3), ops._tilt_knee_ref(x, 0.1, 0.3))
+    x[0, :, 0, 0] = 0.0  # a texel exactly flat: a finite gradient (the slope)
+    x.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: ops.tilt_knee(t, 0.1, 0.3), (x,))
+    ops.tilt_knee(x, 0.1, 0.3).sum().backward()
+    assert torch.isfinite(x.grad).all() and float(x.grad[0, 0, 0, 0]) == pytest.approx(0.3)
+    with pytest.raises(ValueError, match=r"expected float \(B, 2, H, W\) x and y, got \(1, 3, 2, 2\)"):
+        ops.tilt_knee(torch.zeros(1, 3, 2, 2), 0.1, 0.2)
+    with pytest.raises(ValueError, match="expected a finite knee >= 0 and a slope in \\(0, 1\\], got -0.1 and 0.2"):
+        ops.tilt_knee(xy, -0.1, 0.2)
+    with pytest.raises(ValueError, match="got 0.1 and 0.0"):
+        ops.tilt_knee(xy, 0.1, 0.0)
+
+
+def test_normal_knee_bends_only_the_normals_tilt_at_every_output_resolution():
+    knee = dataclasses.replace(TINY, normal_knee=0.02, normal_knee_slope=0.25)
+    plain, bent = Generator(TINY), Generator(knee)
+    bent.load_state_dict(plain.state_dict())  # no weights of its own
+    ws = plain.ws(torch.randn(3, TINY.z_dim))
+    for r in (4, 8, 16):  # the trunk's early stop and the branched top
+        a = plain.synthesis(ws, noise_mode="const", max_resolution=r)
+        b = bent.synthesis(ws, noise_mode="const", max_resolution=r)
+        torch.testing.assert_close(b.albedo, a.albedo)
+        torch.testing.assert_close(b.specular, a.specular)
+        torch.testing.assert_close(b.normals[:, 2:], a.normals[:, 2:])
+        # in network space the knee is the unit normal's 0.02 over normal_scale
+        torch.testing.assert_close(b.normals[:, :2], ops.tilt_knee(a.normals[:, :2], 0.02 / TINY.normal_scale, 0.25))
+        assert not torch.equal(b.normals[:, :2], a.normals[:, :2])
+    for bad, match in (({"normal_knee": -0.01}, r"normal_knee must be in \[0, 0.1\)"),
+                       ({"normal_knee": float("nan")}, "normal_knee must be"),
+                       ({"normal_knee_slope": 1.5}, r"normal_knee_slope must be in \(0, 1\], got 1.5")):
+        with pytest.raises(ValueError, match=match):
+            dataclasses.replace(TINY, **bad)
+
+
 def test_encode_decode_round_trip():
     n = torch.nn.functional.normalize(torch.randn(2, 3, 8, 8) * torch.tensor([0.1, 0.1, 0.1]).view(1, 3, 1, 1)
                                       + torch.tensor([0, 0, 1.0]).view(1, 3, 1, 1), dim=1)
@@ -5121,6 +5170,27 @@ def test_train_bf16_on_a_cpu_without_bfloat16_warns_and_trains(dataset_dir, tmp_
         assert load_checkpoint(tmp_path / f"run{supported}" / "checkpoint.safetensors").train.bf16 is True
 
 
+def test_train_command_sets_the_normal_knee_on_a_new_run_and_changes_it_on_resume(dataset_dir, tmp_path):
+    from fitme_cli.cli import main
+
+    run = tmp_path / "run"
+    args = ["train", str(dataset_dir), "-o", str(run), "--resolution", "16", "--branch-resolution", "8",
+            "--channel-base", "64", "--channel-max", "16", "--batch", "4", "--snapshot-kimg", "0.004", "--threads", "1"]
+    r = CliRunner().invoke(main, [*args, "--kimg", "0.004", "--normal-knee", "0.002"])
+    assert r.exit_code == 0, r.output
+    before = load_checkpoint(run / "checkpoint.safetensors")
+    assert (before.gan.normal_knee, before.gan.normal_knee_slope) == (0.002, 0.2)
+    r = CliRunner().invoke(main, [*args, "--kimg", "0.008", "--resume", "--normal-knee", "0.003", "--normal-knee-slope", "0.5"])
+    assert r.exit_code == 0, r.output
+    assert "G's tilt knee 0.002 (slope 0.2) -> 0.003 (slope 0.5)" in r.output and "no layer changes width" in r.output
+    after = load_checkpoint(run / "checkpoint.safetensors")
+    assert (after.gan.normal_knee, after.gan.normal_knee_slope) == (0.003, 0.5) and after.nimg == 8
+    assert after.G_ema.state_dict().keys() == before.G_ema.state_dict().keys()  # the knee has no weights
+    assert json.loads((run / "config.json").read_text())["gan"]["normal_knee"] == 0.003
+    r = CliRunner().invoke(main, [*args, "--kimg", "0.012", "--resume", "--normal-knee-slope", "0"])
+    assert r.exit_code == 2 and "normal_knee_slope must be in (0, 1], got 0.0" in r.output, r.output
+
+
 def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path):
     from fitme_cli.cli import main
 
@@ -5981,10 +6051,12 @@ def test_widening_keeps_what_g_and_d_compute_and_trains_the_new_channels():
             p.add_(0.1 * torch.randn_like(p))
         state.G_ema.load_state_dict(state.G.state_dict())
     state.step, state.nimg, state.ada_p = 7, 28, 0.3
+    state.running_tone, state.running_link = torch.arange(4.0), 0.25  # the drift terms' running means carry over
     wide_settings = dataclasses.replace(TINY, channel_base=128)  # 16x16: 4 -> 8 channels, 8x8: 8 -> 16
     assert wide_settings.channels(16) > TINY.channels(16)
     wide = widen_state(state, wide_settings)
     assert (wide.step, wide.nimg, wide.ada_p, wide.gan) == (7, 28, 0.3, wide_settings)
+    assert torch.equal(wide.running_tone, torch.arange(4.0)) and wide.running_link == 0.25 and wide.running_moments is None
     z = torch.randn(3, TINY.z_dim)
     with torch.no_grad():
         for old, new in ((state.G, wide.G), (state.G_ema, wide.G_ema)):

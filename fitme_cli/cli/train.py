@@ -41,7 +41,8 @@ def _stop_requests():
 
 # flag -> (settings class name, field)
 _GAN_FLAGS = ("resolution", "branch_resolution", "channel_base", "channel_max", "g_channel_min", "g_channel_base",
-              "mapping_layers", "d_joint_branch", "layout_resolution", "layout_gain")
+              "mapping_layers", "d_joint_branch", "layout_resolution", "layout_gain",
+              "normal_knee", "normal_knee_slope")
 _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_lr", "d_lr", "g_top_lr_mul", "g_top_lr_from",
                 "ema_kimg",
                 "ada_target", "ada_color", "moment_weight", "moment_drift_weight", "link_weight",
@@ -96,6 +97,10 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
 @click.option("--layout-gain/--no-layout-gain", default=None,
               help="With --layout: the layout also scales the features G reads it with, texel by texel (SPADE's "
                    "gamma; not in the paper); may be added on --resume. [off]")
+@click.option("--normal-knee", type=float,
+              help="G's normals' tilts up to this (unit normal) are scaled by --normal-knee-slope, those above shifted "
+                   "toward 0 to meet them: flat where the data is flat (not in the paper); may change on --resume. [0: off]")
+@click.option("--normal-knee-slope", type=float, help="The tilt knee's slope below the knee, in (0, 1]. [0.2]")
 @click.option("--batch", type=int, help="[4]")
 @click.option("--kimg", type=float, help="Train until this many thousand real images. [40]")
 @click.option("--r1-gamma", type=float, help="[3.0]")
@@ -486,7 +491,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
                 raise click.BadParameter(f"{e} (on --resume only --channel-base, --channel-max, --g-channel-min and "
-                                         "--g-channel-base may grow, and --d-joint-branch, --layout and --layout-gain be added)") from None
+                                         "--g-channel-base may grow, --d-joint-branch, --layout and --layout-gain be added, and "
+                                         "--normal-knee and --normal-knee-slope change)") from None
             grew = [f"{who}'s {r}x{r} {old(r)} -> {new(r)}" for who, old, new in
                     (("G", before.g_channels, state.gan.g_channels), ("D", before.channels, state.gan.channels))
                     for r in before.resolutions if old(r) != new(r)]
@@ -499,6 +505,10 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                            f"{state.gan.layout_resolution}x{state.gan.layout_resolution})", err=True)
             if state.gan.layout_gain and not before.layout_gain:
                 click.echo("added G's layout gain", err=True)
+            knee = (state.gan.normal_knee, state.gan.normal_knee_slope)
+            if knee != (before.normal_knee, before.normal_knee_slope):
+                click.echo(f"G's tilt knee {before.normal_knee:g} (slope {before.normal_knee_slope:g}) -> {knee[0]:g} "
+                           f"(slope {knee[1]:g})", err=True)
             if not grew and (state.gan.d_joint_branch, state.gan.layout_channels, state.gan.layout_gain) == (
                     before.d_joint_branch, before.layout_channels, before.layout_gain):
                 click.echo("no layer changes width", err=True)

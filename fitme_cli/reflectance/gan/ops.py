@@ -7,12 +7,14 @@ path and an explicit FIR convolution is the reference.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import torch
 import torch.nn.functional as F
 
-__all__ = ["bias_lrelu", "modulated_conv2d", "modulated_conv2d_extra", "spatial_gain", "conv_up2x", "conv_down2x", "upsample2x", "downsample2x"]
+__all__ = ["bias_lrelu", "modulated_conv2d", "modulated_conv2d_extra", "spatial_gain", "conv_up2x", "conv_down2x", "upsample2x", "downsample2x",
+           "tilt_knee"]
 
 _LRELU_GAIN = math.sqrt(2.0)
 
@@ -80,6 +82,31 @@ def spatial_gain(x: torch.Tensor, layout: torch.Tensor, weight: torch.Tensor) ->
                          f"{tuple(x.shape)}, layout {tuple(layout.shape)}, weight {tuple(weight.shape)}")
     g = F.conv2d(layout.to(x.dtype), weight.to(x.dtype)[:, :, None, None])
     return x * (1 + g)
+
+
+def tilt_knee(xy: torch.Tensor, knee: float, slope: float) -> torch.Tensor:
+    """xy: (B, 2, H, W) float, a normal map's tangent-space x and y -> the same shape and dtype: each texel's (x, y)
+    scaled by ``slope`` where its length m is at most ``knee``, and by 1 - knee (1 - slope) / m above, so that the new
+    length is continuous in m with slope ``slope`` below the knee and 1 above it (a shift of knee (1 - slope) toward
+    0). ``knee`` in xy's units, >= 0 (0: xy unchanged); ``slope`` in (0, 1]. The factor reads m^2 clamped at knee^2,
+    so its gradient is finite at m = 0 (there xy is only scaled)."""
+    if xy.ndim != 4 or xy.shape[1] != 2 or not xy.is_floating_point():
+        raise ValueError(f"tilt_knee: expected float (B, 2, H, W) x and y, got {tuple(xy.shape)} {xy.dtype}")
+    if not (math.isfinite(knee) and knee >= 0) or not 0 < slope <= 1:
+        raise ValueError(f"tilt_knee: expected a finite knee >= 0 and a slope in (0, 1], got {knee} and {slope}")
+    if knee == 0:
+        return xy
+    m2 = xy.square().sum(1, keepdim=True).clamp_min(knee * knee)
+    return xy * (1 - knee * (1 - slope) * m2.rsqrt())
+
+
+def _tilt_knee_ref(xy, knee, slope):
+    out = xy.clone()
+    for b, i, j in itertools.product(range(xy.shape[0]), range(xy.shape[2]), range(xy.shape[3])):
+        v = xy[b, :, i, j]
+        m = float(v.norm())
+        out[b, :, i, j] = v * slope if m <= knee else v * (m - knee * (1 - slope)) / m
+    return out
 
 
 def _spatial_gain_ref(x, layout, weight):

@@ -100,10 +100,10 @@ def widen_state(state, gan: GanSettings):
     """A TrainState whose G, G_ema and D have ``gan``'s (wider) channels, and D the joint branch if ``gan``
     asks for it, and which computes what ``state``'s did.
     Counters, ADA, train settings and Adam's state (``carry_adam``) carry over."""
-    from .train import new_state
+    from .train import _RUNNING, new_state
 
     grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch", "layout_channels",
-             "layout_resolution", "layout_gain"}
+             "layout_resolution", "layout_gain", "normal_knee", "normal_knee_slope"}  # the knee: no weights
     fixed = {f.name for f in dataclasses.fields(GanSettings)} - grows
     changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
     if changed:
@@ -132,6 +132,11 @@ def widen_state(state, gan: GanSettings):
     carry_adam(state.opt_G, state.G, out.opt_G, out.G)
     carry_adam(state.opt_D, state.D, out.opt_D, out.D)
     for name in ("step", "nimg", "ada_p", "ada_acc", "ada_n", "wall_time"):
+        setattr(out, name, getattr(state, name))
+    # the drift terms' running means too: the wider G draws what the trained one did. Restarted from 16 batches of
+    # fakes instead (``train.warm_running``), every term's gap jumped 3-20 fold at 372.23 kimg and D won within six
+    # steps (D loss 0.26 -> 0.01-0.03; docs/brdf_gan.md, "372.23 kimg")
+    for name in (*_RUNNING, "running_link"):
         setattr(out, name, getattr(state, name))
     if state.D_patch is not None:  # the local D reads the maps, not the networks' channels: kept as it is
         out.D_patch, out.opt_D_patch = state.D_patch, state.opt_D_patch
