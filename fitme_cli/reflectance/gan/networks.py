@@ -86,8 +86,9 @@ class GanSettings:
     # leaned every texel a little (126 and 129), the judges' tell. On 64 samples the knee at 3.2e-3, slope 0.2, moved
     # the share of near-flat texels off 127/128 in the data's flat triangles from 0.30 to 0.08 (data 0.08), and the
     # scalp's texels at 127/128 in both x and y from 0.94 % to 1.42 % (data 1.37 %); the regions' mean tilts moved
-    # by at most 0.17 per mille (docs/brdf_gan.md, "372.23 kimg"). A fixed function, no weights: it may change on
-    # --resume.
+    # by at most 0.17 per mille (docs/brdf_gan.md, "372.23 kimg"). But trained through (two legs from 372.22) G drew
+    # the body's normals away from the data's (their 7-33 texel bumps over the finest band 0.52 -> 0.42, data 0.53).
+    # A fixed function, no weights: it may change on --resume.
     normal_knee: float = 0.0
     normal_knee_slope: float = 0.2
 

@@ -99,7 +99,7 @@ def carry_adam(old_opt: torch.optim.Optimizer, old: nn.Module, new_opt: torch.op
 def widen_state(state, gan: GanSettings):
     """A TrainState whose G, G_ema and D have ``gan``'s (wider) channels, and D the joint branch if ``gan``
     asks for it, and which computes what ``state``'s did.
-    Counters, ADA, train settings and Adam's state (``carry_adam``) carry over."""
+    Counters, ADA, train settings, Adam's state (``carry_adam``) and the drift terms' running means carry over."""
     from .train import _RUNNING, new_state
 
     grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch", "layout_channels",
