@@ -2533,6 +2533,8 @@ def _load_opt(prefix: str, opt: torch.optim.Optimizer, tensors: dict[str, torch.
 # the tensor running means a checkpoint holds (the link's is a float, in the metadata): the moment drift's and
 # each per-region term's, in ``_REGION_TERMS``' order
 _RUNNING = ("running_moments", *(f"running_{term}" for term in _REGION_TERMS))
+# every drift term's running mean: ``_RUNNING`` and the link term's (a float, saved apart): what a resume keeps or drops
+_RUNNING_MEANS = (*_RUNNING, "running_link")
 # each running mean's term weight: the term is on when it is > 0
 _RUNNING_WEIGHTS = {"running_moments": "moment_drift_weight", **{f"running_{term}": f"{term}_weight" for term in _REGION_TERMS}}
 # what each running mean measures, where it has changed (absent: 1); saved beside them, and a checkpoint's running
@@ -2588,7 +2590,7 @@ def warm_running(state: TrainState, batches: int = _WARM_BATCHES) -> list[str]:
 def clear_running(state: TrainState) -> None:
     """Forget every drift term's running mean (``train`` then restarts them with ``warm_running``): for a resume
     that changes what they follow (``TrainSettings.drift_on_ema``)."""
-    for k in (*_RUNNING, "running_link"):
+    for k in _RUNNING_MEANS:
         setattr(state, k, None)
 
 

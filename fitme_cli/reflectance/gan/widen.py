@@ -100,7 +100,7 @@ def widen_state(state, gan: GanSettings):
     """A TrainState whose G, G_ema and D have ``gan``'s (wider) channels, and D the joint branch if ``gan``
     asks for it, and which computes what ``state``'s did.
     Counters, ADA, train settings, Adam's state (``carry_adam``) and the drift terms' running means carry over."""
-    from .train import _RUNNING, new_state
+    from .train import _RUNNING_MEANS, new_state
 
     grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch", "layout_channels",
              "layout_resolution", "layout_gain", "normal_knee", "normal_knee_slope"}  # the knee: no weights
@@ -136,7 +136,7 @@ def widen_state(state, gan: GanSettings):
     # the drift terms' running means too: the wider G draws what the trained one did. Restarted from 16 batches of
     # fakes instead (``train.warm_running``), every term's gap jumped 3-20 fold at 372.23 kimg and D won within six
     # steps (D loss 0.26 -> 0.01-0.03; docs/brdf_gan.md, "372.23 kimg")
-    for name in (*_RUNNING, "running_link"):
+    for name in _RUNNING_MEANS:
         setattr(out, name, getattr(state, name))
     if state.D_patch is not None:  # the local D reads the maps, not the networks' channels: kept as it is
         out.D_patch, out.opt_D_patch = state.D_patch, state.opt_D_patch
