@@ -5017,9 +5017,17 @@ def test_blind_reference_sheets_show_data_the_rounds_do_not(tmp_path):
     data = _tiny_data(n=32)  # 16 for the reference, 8 per round
     data[:, :3] += torch.linspace(-0.5, 0.5, 32).view(32, 1, 1, 1)  # network space: ~4 sRGB levels apart
     judge = tmp_path / "judge"
-    paths = make_rounds(G, data, judge, rounds=2, seed=5, reference=16, key_path=tmp_path / "key.json")
-    assert [p.name for p in paths[4:]] == ["reference_0.png", "reference_1.png"]
+    paths = make_rounds(G, data, judge, rounds=2, seed=5, reference=16, key_path=tmp_path / "key.json", brief="eye")
+    assert [p.name for p in paths[4:]] == ["reference_0.png", "reference_1.png", "BRIEF.md"]
     assert sorted(p.name for p in judge.iterdir()) == sorted(p.name for p in paths)  # no key beside the pictures
+    brief = paths.pop().read_text()
+    assert "16 rows, ALL real" in brief and "16x16 UV maps" in brief and "judge by eye" in brief
+    assert "Do **not** compute statistics" in brief and "measured values" not in brief
+    make_rounds(G, data, tmp_path / "measure", rounds=1, seed=5, brief="measure")
+    brief = (tmp_path / "measure" / "BRIEF.md").read_text()
+    assert "measure anything" in brief and "measured values" in brief and "ALL real" not in brief  # no references
+    with pytest.raises(ValueError, match=r"expected brief None or one of \['eye', 'measure'\], got 'ears'"):
+        make_rounds(G, data, tmp_path / "ears", brief="ears")
     key = json.loads((tmp_path / "key.json").read_text())
     ours = _triplets(GanImages.split(data.float()), G)
     assert len({o.tobytes() for o in ours}) == 32  # every sample draws differently, so rows name their sample

@@ -12,7 +12,10 @@ docs/brdf_gan.md) is "easily told apart".
 
 For a judge who has not seen G before (a fresh person, or a helper agent), ``--reference 16`` adds
 ``reference_0.png`` / ``_1.png``: 16 triplets of the data, none of them in the rounds, so that the judge knows
-what the data looks like; and ``--key PATH`` writes the key outside the folder the judge is given.
+what the data looks like; ``--key PATH`` writes the key outside the folder the judge is given; and ``--brief eye``
+writes the judge's instructions, ``BRIEF.md``, into the folder: ``eye`` (the person test: decide by looking,
+enlarged crops allowed, no statistic computed from the pixels) or ``measure`` (any measurement allowed: a stricter
+test than a person's).
 """
 
 from __future__ import annotations
@@ -30,9 +33,53 @@ import torch
 from .latents import sample_z
 from .networks import GanImages, Generator, decode_maps
 
-__all__ = ["BlindScore", "make_rounds", "score", "record_score"]
+__all__ = ["BRIEFS", "BlindScore", "make_rounds", "score", "record_score"]
 
 _PER_SIDE = 8  # generated and data triplets per round
+
+# The judges' rules. "eye" is the card's bar as the issue words it ("a person cannot easily tell apart"); helper
+# judges with "measure" rules told G by statistics no person sees (a notch at 0.45 cycle in the normals' row
+# spectra, a high-pass kurtosis), so the two are kept apart and named on the card (docs/brdf_gan.md, 2026-12-06).
+BRIEFS = {
+    "eye": """## Rules: judge by eye
+- Decide only from what you **see**. Look at the sheets with an image viewer. You may make enlarged crops (one row,
+  one panel, a region at 2-4x with nearest-neighbour) and brighten or contrast-stretch them for viewing: that is what
+  a person with an image viewer can do.
+- Do **not** compute statistics to decide: no means, histograms, spectra, correlations, level counts, classifiers or
+  any other number computed from the pixels. Code may only decode, crop, enlarge, contrast-stretch and write images.
+""",
+    "measure": """## Rules: look and measure
+- Look at the sheets, and measure anything you like from the pixels (statistics, spectra, histograms).
+""",
+}
+
+
+def _brief(kind: str, resolution: int, reference: int) -> str:
+    """The judge's instructions for a folder ``make_rounds`` wrote (Markdown)."""
+    ref = (f"- `reference_0.png` ... : {reference} rows, ALL real (training data), 8 a sheet. Study them first.\n"
+           if reference else "")
+    return f"""# Blind test: tell generated texture maps from real ones
+
+You are judging whether a generative model's face texture maps can be told apart from its training data.
+
+## What is in this folder
+{ref}- `round0_a.png`, `round0_b.png`, ...: 8 rows each, numbered 0-7 (a) and 8-15 (b) in the top-left corner. Each
+  round has 16 rows: exactly **8 are generated (G)** and 8 are real. Ids are "ROUND-INDEX", e.g. "0-5", "1-12".
+
+Each row is a triplet of three {resolution}x{resolution} UV maps side by side:
+1. diffuse albedo (sRGB),
+2. specular albedo (x3, sRGB, grey),
+3. tangent-space normals shown as 2.5 n + 0.5 (flat = grey-blue; x in red, y in green).
+
+UV layout: the face is in the middle, the scalp and hair at the top, the neck and body at the bottom.
+
+{BRIEFS[kind]}- Work only inside this folder; do not look for keys or other files outside it. Use 1 thread.
+
+## Deliverable
+Write `guesses.json` in this folder: `{{"G": ["0-3", "0-9", ..., "1-14"]}}` with exactly 8 ids per round. Then
+report your picks, your confidence per round (50 % is guessing) and the cues you used: what you saw, where, on which
+ids{", with measured values for the references against your picks" if kind == "measure" else ""}.
+"""
 
 
 @dataclass(frozen=True)
@@ -59,13 +106,13 @@ def _triplets(imgs: GanImages, G: Generator) -> np.ndarray:
 
 
 def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2, seed: int | None = None,
-                reference: int = 0, key_path: Path | None = None) -> list[Path]:
+                reference: int = 0, key_path: Path | None = None, brief: str | None = None) -> list[Path]:
     """Write ``roundR_a.png`` / ``roundR_b.png`` (8 numbered triplets each) into ``out_dir`` and the key to
     ``key_path`` (default ``out_dir / "key.json"``). ``data``: (N, 7, R, R) network space, N >= 8 * ``rounds`` +
     ``reference`` (``data.load_dataset``; no data triplet shows twice); G samples at psi 1 with random noise, as the card does. ``seed`` None draws one from
     the OS, so the judge cannot know the order. ``reference`` > 0 also writes ``reference_0.png``, ``_1.png``, ...
-    (8 unnumbered rows each): that many data triplets that no round shows. Returns the rounds' paths, then the
-    reference sheets'."""
+    (8 unnumbered rows each): that many data triplets that no round shows. ``brief`` (a key of ``BRIEFS``) also
+    writes the judge's rules to ``BRIEF.md``. Returns the rounds' paths, then the reference sheets', then the brief's."""
     import cv2
 
     from ...io.atomic import atomic_write_bytes, atomic_write_image
@@ -75,6 +122,8 @@ def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2
         raise ValueError(f"expected rounds >= 1, got {rounds}")
     if reference < 0:
         raise ValueError(f"expected reference >= 0, got {reference}")
+    if brief is not None and brief not in BRIEFS:
+        raise ValueError(f"expected brief None or one of {sorted(BRIEFS)}, got {brief!r}")
     need = _PER_SIDE * rounds + reference
     if data.ndim != 4 or data.shape[1:] != (7, r, r) or len(data) < need:
         raise ValueError(f"expected data of shape (N >= {need}, 7, {r}, {r}), got {tuple(data.shape)}")
@@ -112,6 +161,9 @@ def make_rounds(G: Generator, data: torch.Tensor, out_dir: Path, rounds: int = 2
         path = out_dir / f"reference_{start // _PER_SIDE}.png"
         atomic_write_image(path, np.concatenate([np.pad(t, ((2, 2), (0, 0), (0, 0)), constant_values=255) for t in part], 0))
         paths.append(path)
+    if brief is not None:
+        paths.append(out_dir / "BRIEF.md")
+        atomic_write_bytes(paths[-1], _brief(brief, r, reference).encode())
     atomic_write_bytes(Path(key_path) if key_path is not None else out_dir / "key.json", json.dumps(key, indent=0).encode())
     return paths
 
@@ -143,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     mk.add_argument("--reference", type=int, default=0, help="also write this many data triplets no round shows, for a "
                     "judge who has not seen the data (reference_*.png; 16 is two sheets)")
     mk.add_argument("--key", type=Path, help="write the key here instead of OUT/key.json (out of the judge's sight)")
+    mk.add_argument("--brief", choices=sorted(BRIEFS), help="also write the judge's rules, OUT/BRIEF.md: 'eye' (the "
+                    "person test: by looking only) or 'measure' (any statistic allowed)")
     sc = sub.add_parser("score", help="score a judge's guesses against the key")
     sc.add_argument("out", type=Path, help="the rounds' folder (its key.json) or the key file itself")
     sc.add_argument("guesses", type=Path, help='JSON {"G": ["0-3", ...]}: the triplets judged generated')
@@ -159,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             G = load_checkpoint(args.generator).G_ema if args.generator.is_file() else load_generator(args.generator)
             data = load_dataset(args.data_dir, G.settings, progress=False)
-            paths = make_rounds(G, data, args.out, args.rounds, reference=args.reference, key_path=args.key)
+            paths = make_rounds(G, data, args.out, args.rounds, reference=args.reference, key_path=args.key,
+                                brief=args.brief)
         except (FitmeError, OSError, ValueError) as e:
             print(f"blind make: {e}", file=sys.stderr)
             return 2
