@@ -1005,8 +1005,10 @@ def test_region_band_energy_matches_reference_known_values_gradients_and_bad_inp
     assert out.abs().max() == 0 and torch.isfinite(flat.grad).all()  # a flat map: no energy, no NaN gradient
     with pytest.raises(ValueError, match=r"expected float \(N, C, R, R\) maps and \(R, R\) uint8 regions matching them, got \(3, 16, 16\)"):
         region_band_energy(x[:, 0], regions)
-    with pytest.raises(ValueError, match="levels must be 1, 2 or 3, got 4"):
-        region_band_energy(x, regions, levels=4)
+    torch.testing.assert_close(region_band_energy(x, regions, levels=4), _band_energy_ref(x, regions, 4))  # to 1 x 1
+    for bad in (0, 5):  # 16 does not halve 5 times
+        with pytest.raises(ValueError, match=f"levels must be >= 1 and halve the side 16 exactly, got {bad}"):
+            region_band_energy(x, regions, levels=bad)
     with pytest.raises(ValueError, match="at least one mapped region"):
         region_band_energy(x, torch.full((r, r), 255, dtype=torch.uint8))
 
@@ -4774,6 +4776,41 @@ def test_sheet_axis_measure_and_pull(tmp_path):
     _assert_region_term_refusals("sheet_axis", _tiny_data(), tmp_path)
 
 
+def test_mottle_measure_and_pull(tmp_path):
+    """The mottle measure is ``region_band_energy`` of the log linear luminance (floored at 1e-3), its two coarsest of
+    up to 5 levels (4-8 and 8-16 texels at 16^2), region-major, then the squares; a patch 8 texels wide shows in them
+    where single-texel grain does not; blind to the specular, the normals and the albedo's scale; the pull; refusals."""
+    from fitme_cli.reflectance.gan.metrics import region_band_energy
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _mottle
+
+    regions = _two_regions()
+    x = torch.randn(4, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    lum = decode_albedo(x[:, :3]).mean(1, keepdim=True).clamp_min(1e-3).log()
+    want = region_band_energy(lum, regions, 4)[:, :, 2:, 0].flatten(1)  # (4, 2 regions x 2 bands)
+    got = _mottle(x, regions)
+    assert got.shape == (4, 8)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    other = x.clone()
+    other[:, 3:] = torch.randn(4, 4, 16, 16).clamp(-1, 1)
+    torch.testing.assert_close(_mottle(other, regions), got)  # the specular and the normals are not read
+    flat = torch.zeros(1, 7, 16, 16)
+    grain, patch = flat.clone(), flat.clone()
+    grain[:, :3] = 0.3 * (-1.0) ** (torch.arange(16)[:, None] + torch.arange(16)[None, :]).float()
+    patch[:, :3, :, 8:] = 0.3  # the right region one tone, the left another: 8-texel patches
+    assert float(_mottle(flat, regions).abs().max()) < 1e-6 and float(_mottle(grain, regions)[:, :4].max()) < 1e-5
+    assert float(_mottle(patch, regions)[:, :4].min()) > 0.01
+    lighter = patch.clone()
+    lighter[:, :3] = encode_maps(ReflectanceMaps(2 * decode_albedo(patch[:, :3]), torch.full((1, 1, 16, 16), 0.2),
+                                                 torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(1, 3, 16, 16)),
+                                 TINY).cat()[:, :3]
+    torch.testing.assert_close(_mottle(lighter, regions), _mottle(patch, regions), atol=1e-5, rtol=1e-4)  # log: scale-blind
+    albedo = (0.5 * x[:2, :3]).double().requires_grad_()  # off the clamp's kinks at +-1
+    rest = x[:2, 3:].double()
+    assert torch.autograd.gradcheck(lambda t: _mottle(torch.cat([t, rest], 1), regions), (albedo,), eps=1e-6, atol=1e-4)
+    _check_spread_pull("mottle", _mottle, regions, tmp_path, 0.5)
+
+
 def test_strip_radial_and_strip_slope_link_measures_and_pull(tmp_path):
     """The strip-radial measure is the mean ``radial_log_profile`` of the sheet maps' square tiles (a quarter of the
     side, at least 16) on the top strip, then the bottom one, then the squares; the strip-slope-link measure is
@@ -5215,7 +5252,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5307,7 +5344,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "sheet_radial_gap" not in lines[0]
     assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
     assert "lattice_phase_gap" not in lines[0]
-    for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis"):
+    for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis", "mottle"):
         assert getattr(state.train, f"{term}_weight") == 0.5 and lines[-1][f"{term}_gap"] > 0
         assert f"{term}_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
@@ -5489,7 +5526,7 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "normal_tilt_by_region", "specular_law_by_region",
                       "grain_overlap_by_region", "normal_radial_profile",
                       "sheet_radial_profile", "texel_phase_deviation", "strip_radial_profile", "strip_slope_link",
-                      "hair_law_tail", "sheet_axis_profile"}
+                      "hair_law_tail", "sheet_axis_profile", "mottle_by_region"}
     # an untrained G draws the mean image with next to no detail: far further off than two halves of the data
     assert list(m["detail_map_log2_ratio"]) == ["albedo_luminance", "normals_x", "normals_y"] and all(
         v["gan_vs_heldout_half"] > 2 * v["half_vs_half"] and 0 <= v["crown_centre_gan_over_data"] < 0.1
@@ -5730,6 +5767,11 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert list(tail) == ["edge_blur", "log_spread"] and all(list(v) == ["data", "gan"] for v in tail.values()), tail
     assert all(p[0] <= p[1] <= p[2] and np.isfinite(p).all() for v in tail.values() for p in v.values()), tail
     assert all(0 <= p[0] and p[2] <= 1 for p in tail["edge_blur"].values()), tail
+    mottle = m["mottle_by_region"]  # per region, per band, per side the quantiles over samples
+    assert mottle and all(list(v) == ["8_16_texels", "16_32_texels"] and all(list(b) == ["data", "gan"] for b in v.values())
+                          for v in mottle.values()), mottle
+    assert all(0 <= p[0] <= p[1] <= p[2] for v in mottle.values() for b in v.values() for p in b.values()), mottle
+    assert any(p[1] > 0 for v in mottle.values() for p in v["8_16_texels"].values()), mottle
     axis = m["sheet_axis_profile"]  # along u and v, per axis of the normals, the ring rows on 1-D bands
     assert list(axis) == ["along_u", "along_v"] and all(list(v) == ["normal_x", "normal_y"] for v in axis.values())
     assert all(list(side) == ["ring_median_db", "finest_db"] and side["finest_db"] == sorted(side["finest_db"])

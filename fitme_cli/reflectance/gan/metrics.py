@@ -146,13 +146,13 @@ def _region_weights(regions: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 def region_band_energy(x: torch.Tensor, regions: torch.Tensor, levels: int = 3) -> torch.Tensor:
     """x: (N, C, R, R) float, any units; regions: (R, R) uint8 labels (255 unmapped) -> (N, k, levels, C)
-    same dtype: the RMS of each Laplacian band (``_bandpass``, finest first) over each region of
-    ``region_labels``. Differentiable (the BRDF-GAN's band term)."""
+    same dtype: the RMS of each Laplacian band (``_bandpass``, finest first: 1-2, 2-4, 4-8 ... texels) over each region
+    of ``region_labels``. Differentiable (the BRDF-GAN's band and mottle terms)."""
     if x.ndim != 4 or not x.is_floating_point() or regions.shape != x.shape[2:] or regions.dtype != torch.uint8:
         raise ValueError(f"expected float (N, C, R, R) maps and (R, R) uint8 regions matching them, got "
                          f"{tuple(x.shape)} {x.dtype} and {tuple(regions.shape)} {regions.dtype}")
-    if not 1 <= levels <= 3:
-        raise ValueError(f"levels must be 1, 2 or 3, got {levels}")
+    if levels < 1 or x.shape[-1] % 2**levels:
+        raise ValueError(f"levels must be >= 1 and halve the side {x.shape[-1]} exactly, got {levels}")
     w = _region_weights(regions, x)
     bands = torch.stack(_bandpass(x, levels), 1)  # (N, L, C, R, R)
     energy = bands.square().flatten(3) @ w.T  # (N, L, C, k)

@@ -31,7 +31,7 @@ from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
 from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
                     _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
-                    _hair_law_tail, _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial,
+                    _hair_law_tail, _mottle, _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial,
                     _sheet_axis, _strip_radial, _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator,
                     load_checkpoint, sheet_ranges)
 
@@ -193,6 +193,9 @@ class _Side:
     # (N, 2, 2, n) per sample the sheet-axis term's measure (``train._sheet_axis``): along u, then along v, the sheet
     # normals' x's (then y's) log energy per band of ``train._axis_edges`` over the bands' mean
     sheet_axis: torch.Tensor
+    # (N, k, 2) per sample the mottle term's measure (``train._mottle``): per region, the RMS of the log albedo
+    # luminance's 8-16 and 16-32 texel Laplacian bands
+    mottle: torch.Tensor
 
 
 _FILTER_REGIONS = ("scalp", "neck")  # the 354.76 kimg judge P's: the hair, and the neck below it
@@ -209,7 +212,7 @@ _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ri
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
                "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law",
                "grain_overlap", "normal_radial", "sheet_radial", "lattice_phase",
-               "strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis")
+               "strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis", "mottle")
 
 
 def _radial_rows(gan: torch.Tensor, real: torch.Tensor, maps: tuple[str, ...],
@@ -437,6 +440,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "strip_slope_link": _strip_slope_link(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 2),
             "hair_law_tail": _hair_law_tail(net, regions, G.settings)[:, :2],
             "sheet_axis": _sheet_axis(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 2, -1).transpose(1, 2),
+            "mottle": _mottle(net, regions).chunk(2, 1)[0].view(len(x), -1, 2),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -697,6 +701,13 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
             _region_name(lab): {axis: {side: _quantiles(m.grain_overlap[:, j, a], (0.1, 0.5, 0.9))
                                        for side, m in (("data", real), ("gan", gan))}
                                 for a, axis in enumerate(("normal_x", "normal_y"))}
+            for j, lab in enumerate(region_labels(regions))},
+        # plain skin where the data's has light and dark patches (the 372.22 kimg judge BE1, by eye): per region, the
+        # 10th, 50th and 90th percentiles over samples of the log luminance's 8-16 and 16-32 texel bands (``train._mottle``)
+        "mottle_by_region": {
+            _region_name(lab): {band: {side: _quantiles(m.mottle[:, j, b], (0.1, 0.5, 0.9))
+                                       for side, m in (("data", real), ("gan", gan))}
+                                for b, band in enumerate(("8_16_texels", "16_32_texels"))}
             for j, lab in enumerate(region_labels(regions))},
         # the normals' finest ring short of energy (the 363.08 kimg judge V): over the whole map and the face's crop, per
         # axis, the median over samples of each ring's log energy over the rings' mean (``train._normal_radial``), in
