@@ -39,7 +39,8 @@ _PER_SIDE = 8  # generated and data triplets per round
 
 # The judges' rules. "eye" is the card's bar as the issue words it ("a person cannot easily tell apart"); helper
 # judges with "measure" rules told G by statistics no person sees (a notch at 0.45 cycle in the normals' row
-# spectra, a high-pass kurtosis), so the two are kept apart and named on the card (docs/brdf_gan.md, 2026-12-06).
+# spectra, a high-pass kurtosis), so the two are kept apart: name the rules in ``score --note`` (docs/brdf_gan.md,
+# "372.22 kimg judged by eye").
 BRIEFS = {
     "eye": """## Rules: judge by eye
 - Decide only from what you **see**. Look at the sheets with an image viewer. You may make enlarged crops (one row,

@@ -538,7 +538,9 @@ class TrainSettings:
     # not in the paper: per sample and region, the RMS of the log albedo luminance's two coarse Laplacian bands, 8-16 and
     # 16-32 texels (``_mottle``). At 372.22 kimg G's skin, forehead and neck held 0.54-0.75 of the data's light and
     # dark patches at 4-16 texels (DoG of the sheet's log luminance, 48 maps), which the band terms' three finest bands
-    # do not reach: a by-eye judge's "plain body" (docs/brdf_gan.md, "372.22 kimg judged by eye"). 0: off
+    # do not reach: a by-eye judge's "plain body" (docs/brdf_gan.md, "372.22 kimg judged by eye"). Trained at 0.4 to
+    # 374.29 kimg the training G met the data (gap 0.34 -> 0.03 spreads) but G_ema's patches barely grew (neck 0.62 ->
+    # 0.70 of the data's): not kept. 0: off
     mottle_weight: float = 0.0
     mottle_beta: float = 0.99  # per-step decay of the running statistics and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
