@@ -3312,6 +3312,25 @@ def test_log_chroma_known_values_brightness_gradients_and_bad_input():
         log_chroma(torch.ones(2, 3, 4, 4, dtype=torch.long))
 
 
+def test_log_luminance_known_values_floor_gradients_and_bad_input():
+    """(0.4, 0.2, 0.3) reads log 0.3; black reads log 1e-3, not -inf; a scale by k adds log k; float64 gradcheck;
+    non-albedo input refused."""
+    from fitme_cli.reflectance.gan.metrics import log_luminance
+
+    x = torch.tensor([0.4, 0.2, 0.3]).view(1, 3, 1, 1).expand(2, 3, 2, 3)
+    out = log_luminance(x)
+    assert out.shape == (2, 1, 2, 3)
+    torch.testing.assert_close(out, torch.full((2, 1, 2, 3), math.log(0.3)))
+    torch.testing.assert_close(log_luminance(torch.zeros(1, 3, 2, 2)), torch.full((1, 1, 2, 2), math.log(1e-3)))
+    y = 0.05 + torch.rand(2, 3, 4, 4, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(log_luminance(y * 0.37), log_luminance(y) + math.log(0.37))
+    assert torch.autograd.gradcheck(log_luminance, (y.double().requires_grad_(True),))
+    with pytest.raises(ValueError, match=r"expected float \(N, 3, H, W\) linear albedo, got \(2, 4, 4, 4\)"):
+        log_luminance(torch.rand(2, 4, 4, 4))
+    with pytest.raises(ValueError, match=r"got \(2, 3, 4, 4\) torch.int64"):
+        log_luminance(torch.ones(2, 3, 4, 4, dtype=torch.long))
+
+
 def test_chroma_bands_see_blotches_of_colour_not_of_brightness():
     """A blotch of grey shading moves the tone bands and leaves the chroma bands; a blotch of colour at the same
     luminance moves the chroma bands. Entries land in the batch's tone halves as the tone-band term's; odd batches and

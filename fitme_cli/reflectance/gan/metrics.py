@@ -55,7 +55,8 @@ __all__ = ["ChannelStats", "channel_stats", "StdParts", "std_parts", "region_lab
            "dark_speck_depth", "nyquist_log_ratio", "corner_log_ratio", "TOP_BANDS", "band_log_ratio",
            "RADIAL_EDGES", "radial_log_profile", "AXIS_EDGES", "axis_log_profile", "region_band_skew",
            "region_band_neighbour",
-           "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range"]
+           "BAND_STATISTICS", "region_band_statistics", "band_statistic_names", "region_quantiles", "local_range",
+           "log_luminance"]
 
 _PER_REGION = 28  # reflectance_features: per region, 7 channel means then 3 bands x 7 channels
 
@@ -375,15 +376,19 @@ def _check_hair_share(albedo: torch.Tensor, zone: torch.Tensor, window: int) -> 
         raise ValueError(f"window must be odd and >= 1, got {window}")
 
 
-def _log_luminance(albedo: torch.Tensor) -> torch.Tensor:
-    """(N, 3, R, R) linear albedo -> (N, R, R): log of the mean of r, g, b, floored at 1e-3."""
-    return albedo.mean(1).clamp_min(1e-3).log()
+def log_luminance(albedo: torch.Tensor) -> torch.Tensor:
+    """(N, 3, H, W) linear albedo -> (N, 1, H, W): log of the mean of r, g, b, floored at 1e-3 (a black texel reads
+    log 1e-3, not -inf). Every luminance-band measure and term reads this one, so their values agree."""
+    if albedo.ndim != 4 or albedo.shape[1] != 3 or not albedo.is_floating_point():
+        raise ValueError(f"log_luminance: expected float (N, 3, H, W) linear albedo, got {tuple(albedo.shape)} "
+                         f"{albedo.dtype}")
+    return albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
 
 
 def _local_log_var(albedo: torch.Tensor, window: int) -> torch.Tensor:
     """(N, 3, R, R) linear albedo -> (N, R, R): the variance (>= 0) of the log luminance over a ``window``^2 box
     (edges: the box's texels inside the map)."""
-    lum = _log_luminance(albedo)[:, None]
+    lum = log_luminance(albedo)
     mean = F.avg_pool2d(lum, window, 1, window // 2, count_include_pad=False)
     var = F.avg_pool2d(lum.square(), window, 1, window // 2, count_include_pad=False) - mean.square()
     return var.clamp_min(0)[:, 0]
@@ -453,7 +458,7 @@ def _check_min_contrast(min_contrast: float) -> None:
 def _hair_colour(albedo: torch.Tensor, face: torch.Tensor, scalp: torch.Tensor, min_contrast: float) -> torch.Tensor:
     """(N, 3, R, R) linear albedo -> (N, R, R) in [0, 1]: ``soft_hairline_share``'s colour test per texel, the log
     luminance's distance from the mean over ``face`` over the scalp mean's, the means without gradient."""
-    lum = _log_luminance(albedo)
+    lum = log_luminance(albedo)[:, 0]
     with torch.no_grad():
         f = lum[:, face].mean(1)
         c = (lum[:, scalp].mean(1) - f).abs().clamp_min(min_contrast)
@@ -497,7 +502,7 @@ def dark_speck_depth(albedo: torch.Tensor, zone: torch.Tensor, face: torch.Tenso
     _check_references(zone, face, scalp)
     if not 0 < q < 1:
         raise ValueError(f"q must be in (0, 1), got {q}")
-    lum = _log_luminance(albedo)
+    lum = log_luminance(albedo)[:, 0]
     with torch.no_grad():
         t = torch.minimum(torch.quantile(lum[:, face], q, dim=1), torch.quantile(lum[:, scalp], q, dim=1))
     return (t[:, None] - lum[:, zone]).clamp_min(0).mean(1)

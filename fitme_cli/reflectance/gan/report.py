@@ -19,7 +19,7 @@ from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, bear
                    face_square, load_dataset, load_regions, split_sides)
 from .latents import sample_z
 from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_region, feature_parts, frechet_distance, gamut_excess,
-                      hair_share, interpolation_smoothness, log_chroma, modality_consistency, reflectance_features, region_albedo,
+                      hair_share, interpolation_smoothness, log_chroma, log_luminance, modality_consistency, reflectance_features, region_albedo,
                       region_albedo_bands, region_band_energy, region_labels, region_moments, region_relief, region_texel_grain,
                       region_spectrum, spectrum_distance, spectrum_excess_peak, std_parts, strand_coherence, texel_lattice, LATTICE_PARTS,
                       texel_phase,
@@ -396,7 +396,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "moments": region_moments(x[:, :3], features),
             "feature_bands": region_band_energy(x[:, :3], features).mean(3),
             "beard": hair_share(x[:, :3], beard),
-            "beard_bands": region_band_energy(x[:, :3].mean(1, keepdim=True).clamp_min(1e-3).log(),
+            "beard_bands": region_band_energy(log_luminance(x[:, :3]),
                                               beard_labels)[:, 0, :, 0],
             "chroma_bands": region_band_energy(chroma, regions).mean(3),
             "specular_bands": region_band_energy(x[:, 3:4], regions)[..., 0],
@@ -422,7 +422,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "gamut": (gamut_excess(x[:, :3]) > 0).double().mean((2, 3)),
             "eye_ring": torch.cat([ring_profile(log, rings), region_moments(log, rings)[:, 0].flip(1)], 1),
             "eye_halves": torch.cat([*near, *(p.abs() for p in near)], 1),
-            "edge_sharpness": region_edge_sharpness(x[:, :3].mean(1, keepdim=True).clamp_min(1e-3).log(), edges)[..., 0],
+            "edge_sharpness": region_edge_sharpness(log_luminance(x[:, :3]), edges)[..., 0],
             # the sheet's final rounding to 8 bits is not applied: half a level at most
             "sheet_flat": region_moments((ranges <= (_FLAT_LEVELS + 0.5) / 255).float(), regions)[:, :, 0],
             "sheet_range": region_moments(ranges, regions)[:, :, 0],

@@ -29,7 +29,8 @@ from ...shape.regions import REGIONS
 from .data import (BROW_EDGE_LABEL, EYE_LABEL, HAIRLINE_LABEL, SIDE_OFFSET, beard_zone, eye_openings, eye_rings, face_square,
                    hairline_reach, hairline_references, hairline_zones, eye_ring_halves, lip_rings, load_regions)
 from .latents import sample_z
-from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussian_blur, log_chroma, region_band_correlation,
+from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussian_blur, log_chroma, log_luminance,
+                      region_band_correlation,
                       region_band_energy, region_coherence, region_edge_sharpness, region_labels, region_moments, region_relief,
                       region_slope_link, region_specular_link, region_spectrum, region_texel_grain, region_texel_tails,
                       ring_profile, row_profile, soft_hair_share, soft_hairline_share, texel_lattice, texel_phase,
@@ -1279,7 +1280,7 @@ def _eye_ring(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
 def _edge_sharpness(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, k): per region, ``metrics.region_edge_sharpness`` of the log of the linear
     albedo's mean of r, g, b (floored at 1e-3), the edge-sharpness term's measure."""
-    log = decode_albedo(x[:, :3]).mean(1, keepdim=True).clamp_min(1e-3).log()
+    log = log_luminance(decode_albedo(x[:, :3]))
     return region_edge_sharpness(log, regions).flatten(1)
 
 
@@ -1504,7 +1505,7 @@ def _mottle(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     1e-3), region-major, then their squares (``spread_loss``). Log: light and dark patches relative to the skin's tone,
     which the tone terms own."""
     x = x.to(torch.promote_types(x.dtype, torch.float32))
-    lum = decode_albedo(x[:, :3]).mean(1, keepdim=True).clamp_min(1e-3).log()
+    lum = log_luminance(decode_albedo(x[:, :3]))
     levels = min(_MOTTLE_LEVELS, int(math.log2(x.shape[-1])))
     return _with_squares(region_band_energy(lum, regions, levels)[:, :, -2:, 0].flatten(1))
 
@@ -1989,7 +1990,7 @@ def texel_maps(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 6, R, R): the linear albedo's log luminance (mean of r, g, b, floored at 1e-3),
     its two ``metrics.log_chroma`` axes, the linear specular (decoded by ``s``), the normals' x and y (network space)."""
     albedo = decode_albedo(x[:, :3])
-    return torch.cat([albedo.mean(1, keepdim=True).clamp_min(1e-3).log(), log_chroma(albedo),
+    return torch.cat([log_luminance(albedo), log_chroma(albedo),
                       decode_specular(x[:, 3:4], s), x[:, 4:6]], 1)
 
 
@@ -2070,7 +2071,7 @@ def _beard_bands(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     albedo = decode_albedo(x[:, :3])
     with torch.no_grad():
         share = soft_hair_share(albedo, _beard_zone(x.shape[-1]).to(x.device))
-    lum = albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
+    lum = log_luminance(albedo)
     return share[:, None] * region_band_energy(lum, _beard_labels(x.shape[-1]).to(x.device), 3)[:, 0, :, 0]
 
 
