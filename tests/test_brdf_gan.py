@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -3598,6 +3599,33 @@ def test_branch_noise_sets_only_the_branched_layers_noise():
         set_branch_noise(state, float("nan"))
 
 
+def test_trunk_noise_sets_only_that_trunk_blocks_noise_in_g_and_g_ema():
+    """set_trunk_noise sets both noise strengths of one trunk block, in G and G_ema, and nothing else; the noise then
+    changes G's maps from draw to draw; a resolution without a trunk block and a strength out of range are refused."""
+    from fitme_cli.reflectance.gan.train import set_trunk_noise
+
+    state = new_state(dataclasses.replace(TINY, branch_resolution=16), TrainSettings(batch=8, kimg=1))  # trunk: 4^2, 8^2
+    before = {G: {n: p.clone() for n, p in G.named_parameters()} for G in (state.G, state.G_ema)}
+    z = torch.randn(2, TINY.z_dim, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        quiet = [state.G_ema(z, noise_mode="random").cat() for _ in range(2)]
+    set_trunk_noise(state, 8, 0.3)
+    for G in (state.G, state.G_ema):
+        for n, p in G.named_parameters():
+            if n.startswith("synthesis.trunk.b8.") and n.endswith("noise_strength"):
+                assert float(p.detach()) == pytest.approx(0.3), n
+            else:
+                assert torch.equal(p, before[G][n]), n
+    assert sum(n.startswith("synthesis.trunk.b8.") and n.endswith("noise_strength") for n in before[state.G]) == 2
+    with torch.no_grad():
+        loud = [state.G_ema(z, noise_mode="random").cat() for _ in range(2)]
+    assert (loud[0] - loud[1]).abs().mean() > 2 * (quiet[0] - quiet[1]).abs().mean()
+    with pytest.raises(ValueError, match=r"one of \[4, 8\], got 16"):
+        set_trunk_noise(state, 16, 0.1)
+    with pytest.raises(ValueError, match="trunk noise strength must be finite and in"):
+        set_trunk_noise(state, 8, float("inf"))
+
+
 @pytest.mark.skipif(not can_compile(), reason="torch.compile needs a C++ compiler")
 @pytest.mark.filterwarnings("ignore:`torch.jit.script_method` is deprecated:DeprecationWarning")  # torch's own, compiling
 def test_compile_synthesis_matches_eager_values_and_gradients_and_keeps_the_state_dict():
@@ -5255,13 +5283,39 @@ def test_train_command_sets_the_normal_knee_on_a_new_run_and_changes_it_on_resum
     assert r.exit_code == 2 and "normal_knee_slope must be in (0, 1], got 0.0" in r.output, r.output
 
 
+def _tiny_train_args(dataset_dir: Path, run: Path, kimg: str) -> list[str]:
+    """`fitme train` on the tiny 16^2 nets, one thread; the last six items are --kimg, --snapshot-kimg, --threads."""
+    return ["train", str(dataset_dir), "-o", str(run), "--resolution", "16", "--branch-resolution", "8",
+            "--channel-base", "64", "--channel-max", "16", "--batch", "4", "--kimg", kimg, "--snapshot-kimg", "0.004",
+            "--threads", "1"]
+
+
+def test_train_command_adds_channel_noise_on_resume_and_refuses_it_on_a_branched_layer(dataset_dir, tmp_path):
+    """--channel-noise on a new run and added on --resume (the run's config and checkpoint record it, and the trunk
+    noise kick fills the channels); a branched resolution is refused with exit 2."""
+    from fitme_cli.cli import main
+
+    run = tmp_path / "run"
+    args = _tiny_train_args(dataset_dir, run, "0.004")
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.008", "--snapshot-kimg", "0.004", "--threads", "1", "--resume",
+                                  "--channel-noise", "4", "--trunk-noise", "4:0.1"])
+    assert r.exit_code == 0, r.output
+    assert "G's noise per channel at 4x4" in r.output and "the trunk's 4^2 noise strength set to 0.1" in r.output
+    assert json.loads((run / "config.json").read_text())["gan"]["channel_noise"] == [4]
+    state = load_checkpoint(run / "checkpoint.safetensors")
+    assert state.gan.channel_noise == (4,) and state.nimg == 8
+    assert state.G_ema.synthesis.trunk["b4"].conv1.noise_strength.shape == (TINY.g_channels(4),)
+    r = CliRunner().invoke(main, [*args[:2], "-o", str(tmp_path / "b"), *args[4:], "--channel-noise", "8"])
+    assert r.exit_code == 2 and "channel_noise must list distinct trunk resolutions, of [4], got [8]" in r.output, r.output
+
+
 def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path):
     from fitme_cli.cli import main
 
     run = tmp_path / "run"
-    args = ["train", str(dataset_dir), "-o", str(run), "--resolution", "16", "--branch-resolution", "8",
-            "--channel-base", "64", "--channel-max", "16", "--batch", "4", "--kimg", "0.008", "--snapshot-kimg", "0.004",
-            "--threads", "1"]
+    args = _tiny_train_args(dataset_dir, run, "0.008")
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
     assert (run / "checkpoint.safetensors").is_file() and len(list((run / "samples").iterdir())) == 2
@@ -5272,11 +5326,12 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
                                   "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
-                                  "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--patch-weight", "0.5",
+                                  "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--trunk-noise", "4:0.1", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "branched layers' noise strength set to 0.05" in r.output
+    assert "the trunk's 4^2 noise strength set to 0.1" in r.output
     assert "a fresh local D on 8x8 crops" in r.output and "local D 0." in r.output
     state = load_checkpoint(run / "checkpoint.safetensors")
     assert state.train.hairline_region is True and state.train.side_regions is True and state.train.relief_weight == 2.0
@@ -5387,6 +5442,11 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert r.exit_code == 2 and "--patch-size 32 exceeds the maps' resolution 16" in r.output
     r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "c"), "--resolution", "16", "--crown-weight", "1"])
     assert r.exit_code == 2 and "--crown-weight needs a resolution that is a multiple of 128" in r.output
+    for bad, said in (("16", "expected RES:S such as 16:0.2, got '16'"), ("a:0.1", "got 'a:0.1'"),
+                      ("12:0.1", "expected a trunk block's resolution, one of [4"), ("4:2", "in [-1, 1], got 2.0")):
+        r = CliRunner().invoke(main, ["train", str(dataset_dir), "-o", str(tmp_path / "t"), "--resolution", "16",
+                                      "--trunk-noise", bad])
+        assert r.exit_code == 2 and said in r.output, (bad, r.output)
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.02", "--resume", "--batch", "8"])
     assert r.exit_code == 2 and "--batch cannot change on --resume" in r.output
     # the channels may grow on resume (gan/widen.py); nothing else of the architecture may change
@@ -6192,6 +6252,61 @@ def test_adding_the_joint_branch_keeps_d_and_trains_it():
     assert torch.count_nonzero(w[:, 2 * c4 + 1 :]) == 0 and w.grad[:, 2 * c4 + 1 :].abs().sum() > 0
     with pytest.raises(ValueError, match="joint branch cannot be removed"):
         widen_state(joint, dataclasses.replace(joint.gan, d_joint_branch=False))
+
+
+def test_channel_noise_scales_each_channel_and_is_added_to_a_trained_run_without_changing_it():
+    """A layer with per-channel noise adds noise * s_c to channel c before its bias and activation (the layer against
+    the formula); GanSettings keeps the resolutions as a sorted tuple (a JSON list reads back equal) and refuses
+    branched or absent ones; added to a trained run (``widen_state``) each channel starts at its layer's scalar, G and
+    G_ema draw what they drew, Adam's moments carry per channel, and it cannot be removed again."""
+    from fitme_cli.reflectance.gan.networks import _SynthesisLayer
+    from fitme_cli.reflectance.gan.ops import bias_lrelu, modulated_conv2d
+    from fitme_cli.reflectance.gan.train import set_trunk_noise
+    from fitme_cli.reflectance.gan.widen import widen_state
+
+    g = torch.Generator().manual_seed(0)
+    layer = _SynthesisLayer(4, 3, 8, 8, up=False, clamp=None, channel_noise=True)
+    assert layer.noise_strength.shape == (3,)
+    with torch.no_grad():
+        layer.noise_strength.copy_(torch.tensor([0.0, 0.5, -2.0]))
+        layer.bias.copy_(torch.tensor([0.1, -0.2, 0.3]))
+    x, w, noise = torch.randn(2, 4, 8, 8, generator=g), torch.randn(2, 8, generator=g), torch.randn(2, 1, 8, 8, generator=g)
+    with torch.no_grad():
+        want = bias_lrelu(modulated_conv2d(x, layer.weight, layer.affine(w), demodulate=True, up=False)
+                          + noise * torch.tensor([0.0, 0.5, -2.0]).view(3, 1, 1), layer.bias)
+        torch.testing.assert_close(layer(x, w, "random", noise=noise), want)
+    assert _SynthesisLayer(4, 3, 8, 8, up=False, clamp=None).noise_strength.shape == ()
+
+    settings = dataclasses.replace(TINY, branch_resolution=16)  # trunk: 4^2, 8^2
+    assert dataclasses.replace(settings, channel_noise=[8, 4]).channel_noise == (4, 8)
+    assert GanSettings(**json.loads(json.dumps(dataclasses.asdict(dataclasses.replace(settings, channel_noise=(8,)))))) == \
+        dataclasses.replace(settings, channel_noise=(8,))
+    for bad in ([16], [2], [8, 8]):
+        with pytest.raises(ValueError, match=r"channel_noise must list distinct trunk resolutions, of \[4, 8\]"):
+            dataclasses.replace(settings, channel_noise=bad)
+
+    state = new_state(settings, TrainSettings(batch=4, kimg=1, channels_last=False))
+    set_trunk_noise(state, 8, 0.3)
+    z = torch.randn(3, TINY.z_dim, generator=g)
+    x = state.G(z, noise_mode="const").cat()
+    x.square().mean().backward()
+    state.opt_G.step()  # Adam's moments for every parameter, the scalar noise strengths' among them
+    state.G_ema.load_state_dict(state.G.state_dict())
+    per = widen_state(state, dataclasses.replace(settings, channel_noise=(8,)))
+    c8 = settings.g_channels(8)
+    for G in (per.G, per.G_ema):
+        for name in ("conv0", "conv1"):
+            p = getattr(G.synthesis.trunk["b8"], name).noise_strength
+            torch.testing.assert_close(p.detach(), torch.full((c8,), float(getattr(state.G.synthesis.trunk["b8"], name).noise_strength.detach())))
+    assert per.G.synthesis.trunk["b4"].conv1.noise_strength.shape == ()
+    with torch.no_grad():
+        for old, new in ((state.G, per.G), (state.G_ema, per.G_ema)):
+            torch.testing.assert_close(new(z, noise_mode="const").cat(), old(z, noise_mode="const").cat())
+    old_p, new_p = state.G.synthesis.trunk["b8"].conv1.noise_strength, per.G.synthesis.trunk["b8"].conv1.noise_strength
+    moments = per.opt_G.state[new_p]
+    assert moments["exp_avg_sq"].shape == (c8,) and torch.equal(moments["exp_avg_sq"], state.opt_G.state[old_p]["exp_avg_sq"].expand(c8))
+    with pytest.raises(ValueError, match=r"per-channel noise cannot be removed from a run that has it .*: \[8\] -> \[\]"):
+        widen_state(per, settings)
 
 
 def test_widening_refuses_what_it_cannot_do():

@@ -73,6 +73,20 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
         raise click.BadParameter("--layout-resolution is read only with --layout (G's layout inputs)")
 
 
+def _res_strength(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> tuple[tuple[int, float], ...]:
+    """--trunk-noise RES:S, repeatable -> ((RES, S), ...); the resolution is checked against G once it is built."""
+    out = []
+    for v in values:
+        res, sep, strength = v.partition(":")
+        try:
+            out.append((int(res), float(strength)))
+        except ValueError:
+            raise click.BadParameter(f"expected RES:S such as 16:0.2, got {v!r}", ctx, param) from None
+        if not sep:
+            raise click.BadParameter(f"expected RES:S such as 16:0.2, got {v!r}", ctx, param)
+    return tuple(out)
+
+
 @click.command("train")
 @click.argument("data_dir", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "run_dir", required=True, type=click.Path(path_type=Path), help="Run directory: checkpoint, metrics, sample grids.")
@@ -102,6 +116,10 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
               help="G's normals' tilts up to this (unit normal) are scaled by --normal-knee-slope, those above shifted "
                    "toward 0 to meet them: flat where the data is flat (not in the paper); may change on --resume. [0: off]")
 @click.option("--normal-knee-slope", type=float, help="The tilt knee's slope below the knee, in (0, 1]. [0.2]")
+@click.option("--channel-noise", "channel_noise", type=int, multiple=True, metavar="RES",
+              help="G's trunk layers at RES^2 scale their noise per channel (StyleGAN1), not by one scalar (StyleGAN2); "
+                   "repeatable; may be added on --resume, each channel starting at its layer's scalar (not in the "
+                   "paper; docs/brdf_gan.md). [none]")
 @click.option("--batch", type=int, help="[4]")
 @click.option("--kimg", type=float, help="Train until this many thousand real images. [40]")
 @click.option("--r1-gamma", type=float, help="[3.0]")
@@ -377,6 +395,10 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
 @click.option("--branch-noise", type=click.FloatRange(-1, 1),
               help="Set the noise strength of every per-modality layer at the start (resume included); StyleGAN2 starts "
                    "them at 0, where they stay (not in the paper; docs/brdf_gan.md). [unchanged]")
+@click.option("--trunk-noise", "trunk_noise", multiple=True, callback=_res_strength, metavar="RES:S",
+              help="Set the noise strength of both layers of the trunk's RES^2 block at the start (resume included), "
+                   "e.g. 16:0.2; repeatable. StyleGAN2 starts them at 0, where they stay (not in the paper; "
+                   "docs/brdf_gan.md). [unchanged]")
 @click.option("--seed", type=int, help="[0]")
 @click.option("--limit", type=int, help="Use only the first N samples of DATA_DIR.")
 @click.option("--threads", type=int, help="torch CPU threads (default: all cores).")
@@ -388,7 +410,8 @@ def _check_layout_resolution(flags: dict, layout_channels: int) -> None:
               help="torch.compile G's synthesis: ~1.3x faster training steps on CPU after a minute of "
                    "compiling; needs a C++ compiler; a compiled run does not resume bit-exactly.")
 def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, limit: int | None, threads: int | None,
-            branch_noise: float | None, compile_g: bool, **flags) -> None:
+            branch_noise: float | None, trunk_noise: tuple[tuple[int, float], ...], compile_g: bool,
+            **flags) -> None:
     """Train BRDF-GAN on DATA_DIR (NAME_albedo/_specular/_normals maps, PNG or EXR).
 
     Every --snapshot-kimg it writes RUN_DIR/samples/kimgNNNN.NN.png (8 rows of A_D | A_S | N_S for fixed
@@ -413,6 +436,7 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     from ..reflectance.gan.networks import GanSettings
     from ..reflectance.gan.train import (TrainSettings, can_bf16, can_compile, clear_running, compile_synthesis, load_checkpoint,
                                          new_state, reset_mean_image, save_checkpoint, set_branch_noise, set_layout_image,
+                                         set_trunk_noise,
                                          set_learning_rates, sync_patch_discriminator, train)
 
     find_samples(data_dir)  # a missing or empty data folder fails before anything else
@@ -434,6 +458,9 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     for name in _GAN_FLAGS:
         if flags.get(name) is not None:
             cfg["gan"][name] = flags[name]
+    channel_noise = flags.pop("channel_noise")  # repeatable: () when not given; adds to a config file's
+    if channel_noise or "channel_noise" in cfg["gan"]:
+        cfg["gan"]["channel_noise"] = tuple(sorted(set(cfg["gan"].get("channel_noise", ())) | set(channel_noise)))
     if flags.get("layout") is not None:
         cfg["gan"]["layout_channels"] = len(LAYOUT_CHANNELS) if flags["layout"] else 0
     if cfg["gan"].get("layout_channels", 0) not in (0, len(LAYOUT_CHANNELS)):
@@ -486,6 +513,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
         # the architecture is the run's own, except that its channels may grow (gan/widen.py: the wider
         # networks start out computing what the trained ones did)
         _check_layout_resolution(flags, cfg["gan"].get("layout_channels", state.gan.layout_channels))
+        if "channel_noise" in cfg["gan"]:  # the resolutions to add to the run's own
+            cfg["gan"]["channel_noise"] = tuple(sorted(set(cfg["gan"]["channel_noise"]) | set(state.gan.channel_noise)))
         grown = {k: v for k, v in cfg["gan"].items() if getattr(state.gan, k) != v}
         if grown:
             from ..reflectance.gan.widen import widen_state
@@ -495,7 +524,8 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                 state = widen_state(state, dataclasses.replace(state.gan, **grown))
             except ValueError as e:
                 raise click.BadParameter(f"{e} (on --resume only --channel-base, --channel-max, --g-channel-min and "
-                                         "--g-channel-base may grow, --d-joint-branch, --layout and --layout-gain be added, and "
+                                         "--g-channel-base may grow, --d-joint-branch, --layout, --layout-gain and "
+                                         "--channel-noise be added, and "
                                          "--normal-knee and --normal-knee-slope change)") from None
             grew = [f"{who}'s {r}x{r} {old(r)} -> {new(r)}" for who, old, new in
                     (("G", before.g_channels, state.gan.g_channels), ("D", before.channels, state.gan.channels))
@@ -509,12 +539,15 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
                            f"{state.gan.layout_resolution}x{state.gan.layout_resolution})", err=True)
             if state.gan.layout_gain and not before.layout_gain:
                 click.echo("added G's layout gain", err=True)
+            if state.gan.channel_noise != before.channel_noise:
+                click.echo(f"G's noise per channel at {', '.join(f'{r}x{r}' for r in state.gan.channel_noise)}", err=True)
             knee = (state.gan.normal_knee, state.gan.normal_knee_slope)
             if knee != (before.normal_knee, before.normal_knee_slope):
                 click.echo(f"G's tilt knee {before.normal_knee:g} (slope {before.normal_knee_slope:g}) -> {knee[0]:g} "
                            f"(slope {knee[1]:g})", err=True)
-            if not grew and (state.gan.d_joint_branch, state.gan.layout_channels, state.gan.layout_gain) == (
-                    before.d_joint_branch, before.layout_channels, before.layout_gain):
+            if not grew and (state.gan.d_joint_branch, state.gan.layout_channels, state.gan.layout_gain,
+                             state.gan.channel_noise) == (before.d_joint_branch, before.layout_channels,
+                                                          before.layout_gain, before.channel_noise):
                 click.echo("no layer changes width", err=True)
             run_cfg = run_dir / "config.json"
             kept = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
@@ -552,6 +585,12 @@ def command(data_dir: Path, run_dir: Path, config: Path | None, resume: bool, li
     if branch_noise is not None:
         set_branch_noise(state, branch_noise)
         click.echo(f"branched layers' noise strength set to {branch_noise}", err=True)
+    for res, strength in trunk_noise:
+        try:
+            set_trunk_noise(state, res, strength)
+        except ValueError as e:
+            raise click.BadParameter(str(e), param_hint="--trunk-noise") from None
+        click.echo(f"the trunk's {res}^2 noise strength set to {strength}", err=True)
     if state.train.bf16 and not can_bf16():
         click.echo("warning: this CPU has no bfloat16 instructions; --bf16 is emulated and likely slower than float32",
                    err=True)

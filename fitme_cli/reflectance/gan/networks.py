@@ -91,8 +91,16 @@ class GanSettings:
     # A fixed function, no weights: it may change on --resume.
     normal_knee: float = 0.0
     normal_knee_slope: float = 0.2
+    # G only, our deviation (StyleGAN1's per-feature noise scale, where StyleGAN2 has one per layer): the trunk
+    # resolutions whose layers scale their noise input per output channel. One scalar adds the same field to every
+    # channel, and the layers after it carry it into the colour, the hair and the specular alike: kicked to 0.2 at 16^2
+    # and 32^2 from 372.22 kimg, the specular's body drew clouds and D pulled the strengths back to 0.08 within 2 kimg
+    # while the albedo's patches stayed flat (docs/brdf_gan.md, "Noise at 16^2 and 32^2"). Per channel, each feature
+    # takes as much as it is pulled to. May be added on --resume (each channel starts at its layer's scalar).
+    channel_noise: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "channel_noise", tuple(sorted(self.channel_noise)))  # a JSON list reads back as one
         for name in ("resolution", "branch_resolution"):
             r = getattr(self, name)
             if r < 8 or r & (r - 1):
@@ -114,6 +122,9 @@ class GanSettings:
             raise ValueError(f"normal_knee must be in [0, 0.1) (a tilt of the unit normal), got {self.normal_knee}")
         if not 0 < self.normal_knee_slope <= 1:
             raise ValueError(f"normal_knee_slope must be in (0, 1], got {self.normal_knee_slope}")
+        trunk = [r for r in self.resolutions if r < self.branch_resolution]
+        if any(r not in trunk for r in self.channel_noise) or len(set(self.channel_noise)) != len(self.channel_noise):
+            raise ValueError(f"channel_noise must list distinct trunk resolutions, of {trunk}, got {list(self.channel_noise)}")
 
     def layout_inputs(self, res: int) -> int:
         """How many layout maps G's conv1 and toImage at resolution ``res`` read besides their features."""
@@ -267,12 +278,13 @@ def _layout_gain(features: int, gain_maps: int) -> nn.Parameter | None:
 class _SynthesisLayer(nn.Module):
     """c_in counts the layout maps read after the features; ``gain_maps`` of them also scale the features."""
 
-    def __init__(self, c_in: int, c_out: int, w_dim: int, res: int, up: bool, clamp: float | None, gain_maps: int = 0):
+    def __init__(self, c_in: int, c_out: int, w_dim: int, res: int, up: bool, clamp: float | None, gain_maps: int = 0,
+                 channel_noise: bool = False):
         super().__init__()
         self.affine = _Linear(w_dim, c_in, bias_init=1.0)
         self.weight = nn.Parameter(torch.randn(c_out, c_in, 3, 3))
         self.bias = nn.Parameter(torch.zeros(c_out))
-        self.noise_strength = nn.Parameter(torch.zeros(()))
+        self.noise_strength = nn.Parameter(torch.zeros(c_out if channel_noise else ()))  # () or (c_out,)
         self.register_buffer("noise_const", torch.randn(res, res))
         self.up, self.res, self.clamp = up, res, clamp
         self.layout_gain = _layout_gain(c_in - gain_maps, gain_maps)
@@ -288,12 +300,13 @@ class _SynthesisLayer(nn.Module):
             if self.layout_gain is not None:
                 x = spatial_gain(x, layout, self.layout_gain)
             x = modulated_conv2d_extra(x, layout, self.weight, styles, demodulate=True)
+        strength = self.noise_strength.reshape(-1, 1, 1) * noise_gain  # (1 or C, 1, 1)
         if noise is not None:
-            x = x + noise * (self.noise_strength * noise_gain)
+            x = x + noise * strength
         elif noise_mode == "random":
-            x = x + torch.randn(x.shape[0], 1, self.res, self.res, device=x.device, dtype=x.dtype) * (self.noise_strength * noise_gain)
+            x = x + torch.randn(x.shape[0], 1, self.res, self.res, device=x.device, dtype=x.dtype) * strength
         elif noise_mode == "const":
-            x = x + self.noise_const * (self.noise_strength * noise_gain)
+            x = x + self.noise_const * strength
         return bias_lrelu(x, self.bias, clamp=self.clamp)
 
 
@@ -336,8 +349,11 @@ class _SynthesisBlock(nn.Module):
         self.res = res
         k = s.layout_inputs(res)
         g = k if s.layout_gain else 0
-        self.conv0 = _SynthesisLayer(c_in, c_out, s.w_dim, res, up=True, clamp=s.conv_clamp) if res > 4 else None
-        self.conv1 = _SynthesisLayer(c_out + k, c_out, s.w_dim, res, up=False, clamp=s.conv_clamp, gain_maps=g)
+        per = res in s.channel_noise
+        self.conv0 = (_SynthesisLayer(c_in, c_out, s.w_dim, res, up=True, clamp=s.conv_clamp, channel_noise=per)
+                      if res > 4 else None)
+        self.conv1 = _SynthesisLayer(c_out + k, c_out, s.w_dim, res, up=False, clamp=s.conv_clamp, gain_maps=g,
+                                     channel_noise=per)
         self.to_image = _ToImage(c_out + k, img_channels, s.w_dim, s.conv_clamp, gain_maps=g)
 
     def forward(self, x, img, ws, noise_mode, noise_gain=1.0, noises=(None, None), layout=None):

@@ -46,7 +46,8 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
            "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
-           "tail_loss", "spread_loss", "set_branch_noise", "clear_running", "can_compile", "compile_synthesis", "random_crops",
+           "tail_loss", "spread_loss", "set_branch_noise", "set_trunk_noise", "clear_running", "can_compile",
+           "compile_synthesis", "random_crops",
            "new_patch_discriminator", "sync_patch_discriminator", "focus_texels", "TEXEL_MAPS", "texel_maps",
            "sheet_ranges", "sheet_maps", "set_layout_image"]
 
@@ -2240,6 +2241,23 @@ def set_branch_noise(state: TrainState, strength: float) -> None:
     with torch.no_grad():
         for G in (state.G, state.G_ema):
             for name, p in G.synthesis.branches.named_parameters():
+                if name.endswith("noise_strength"):
+                    p.fill_(strength)
+
+
+def set_trunk_noise(state: TrainState, resolution: int, strength: float) -> None:
+    """Set the noise strength of both layers of the trunk's ``resolution``^2 block in G and G_ema. StyleGAN2 starts
+    them at 0, where the expected gradient is 0 (``set_branch_noise``): at 372.22 kimg every trunk strength below 64^2
+    was within 0.007 of 0, so G had no random source for the data's light and dark patches at 8-32 texels, and drew
+    one fixed blob per body instead of the data's clouds (docs/brdf_gan.md, "Noise at 16^2 and 32^2")."""
+    if not (math.isfinite(strength) and abs(strength) <= 1):
+        raise ValueError(f"trunk noise strength must be finite and in [-1, 1], got {strength}")
+    blocks = sorted(int(b[1:]) for b in state.G.synthesis.trunk.keys())
+    if resolution not in blocks:
+        raise ValueError(f"trunk noise: expected a trunk block's resolution, one of {blocks}, got {resolution}")
+    with torch.no_grad():
+        for G in (state.G, state.G_ema):
+            for name, p in G.synthesis.trunk[f"b{resolution}"].named_parameters():
                 if name.endswith("noise_strength"):
                     p.fill_(strength)
 

@@ -11,6 +11,7 @@ over the input channels, which zero columns do not change. The same way D can ga
 features through zero weights. And G can gain its layout inputs (``GanSettings.layout_channels``): each conv1 and
 toImage from ``layout_resolution`` up reads them through zero weights, appended after its features; the caller sets
 the new ``layout_image`` (``train.set_layout_image``), and its layout gain (``GanSettings.layout_gain``), which starts at zero.
+And a trunk layer's noise strength can become per channel (``GanSettings.channel_noise``), each channel at the scalar.
 """
 
 from __future__ import annotations
@@ -52,6 +53,9 @@ def widen_module(old: nn.Module, new: nn.Module) -> None:
             if t_old.shape == t_new.shape:
                 t_new.copy_(t_old)
                 continue
+            if t_old.ndim == 0 and t_new.ndim == 1:  # a layer's noise strength made per channel: each starts at it
+                t_new.fill_(t_old)
+                continue
             if t_old.ndim != t_new.ndim or any(o > n for o, n in zip(t_old.shape, t_new.shape)):
                 raise ValueError(f"{name}: cannot widen {tuple(t_old.shape)} to {tuple(t_new.shape)}")
             owner, _, leaf = name.rpartition(".")
@@ -86,6 +90,9 @@ def carry_adam(old_opt: torch.optim.Optimizer, old: nn.Module, new_opt: torch.op
             if not torch.is_tensor(v) or v.shape == p.shape or key == "step":
                 out[key] = v.clone() if torch.is_tensor(v) else v
                 continue
+            if v.ndim == 0 and p.ndim == 1:  # a scalar made per channel (``widen_module``): each channel its moments
+                out[key] = v.expand_as(p).clone()
+                continue
             # the stored weight grew by `scale`, so its gradient shrinks by it
             grown = v / scale if key == "exp_avg" else v / scale**2
             t = torch.full_like(p, float(grown.mean()) if key == "exp_avg_sq" else 0.0)
@@ -103,13 +110,17 @@ def widen_state(state, gan: GanSettings):
     from .train import _RUNNING_MEANS, new_state
 
     grows = {"channel_base", "channel_max", "g_channel_min", "g_channel_base", "d_joint_branch", "layout_channels",
-             "layout_resolution", "layout_gain", "normal_knee", "normal_knee_slope"}  # the knee: no weights
+             "layout_resolution", "layout_gain", "normal_knee", "normal_knee_slope",  # the knee: no weights
+             "channel_noise"}
     fixed = {f.name for f in dataclasses.fields(GanSettings)} - grows
     changed = sorted(k for k in fixed if getattr(gan, k) != getattr(state.gan, k))
     if changed:
         raise ValueError(f"only the channels can grow on a trained run; {', '.join(changed)} would change")
     if state.gan.d_joint_branch and not gan.d_joint_branch:
         raise ValueError("D's joint branch cannot be removed from a run that has one (its trained weights would be lost)")
+    if set(state.gan.channel_noise) - set(gan.channel_noise):
+        raise ValueError(f"per-channel noise cannot be removed from a run that has it (its trained strengths would be "
+                         f"lost): {list(state.gan.channel_noise)} -> {list(gan.channel_noise)}")
     if state.gan.layout_gain and not gan.layout_gain:
         raise ValueError("G's layout gain cannot be removed from a run that has it (its trained weights would be lost)")
     old_k = state.gan.layout_channels
