@@ -2236,13 +2236,7 @@ def set_branch_noise(state: TrainState, strength: float) -> None:
     and there the gradient vanishes in expectation (noise n adds s n; the loss is first order in s only
     through the batch's own draw): the 256^2 strengths of every run stayed at ~1e-3, and all the finest
     detail came from the trunk's 128^2 noise, upsampled into a lattice (docs/brdf_gan.md)."""
-    if not (math.isfinite(strength) and abs(strength) <= 1):
-        raise ValueError(f"branch noise strength must be finite and in [-1, 1], got {strength}")
-    with torch.no_grad():
-        for G in (state.G, state.G_ema):
-            for name, p in G.synthesis.branches.named_parameters():
-                if name.endswith("noise_strength"):
-                    p.fill_(strength)
+    _fill_noise(state, lambda G: G.synthesis.branches, strength, "branch")
 
 
 def set_trunk_noise(state: TrainState, resolution: int, strength: float) -> None:
@@ -2250,14 +2244,19 @@ def set_trunk_noise(state: TrainState, resolution: int, strength: float) -> None
     them at 0, where the expected gradient is 0 (``set_branch_noise``): at 372.22 kimg every trunk strength below 64^2
     was within 0.007 of 0, so G had no random source for the data's light and dark patches at 8-32 texels, and drew
     one fixed blob per body instead of the data's clouds (docs/brdf_gan.md, "Noise at 16^2 and 32^2")."""
-    if not (math.isfinite(strength) and abs(strength) <= 1):
-        raise ValueError(f"trunk noise strength must be finite and in [-1, 1], got {strength}")
     blocks = sorted(int(b[1:]) for b in state.G.synthesis.trunk.keys())
     if resolution not in blocks:
         raise ValueError(f"trunk noise: expected a trunk block's resolution, one of {blocks}, got {resolution}")
+    _fill_noise(state, lambda G: G.synthesis.trunk[f"b{resolution}"], strength, "trunk")
+
+
+def _fill_noise(state: TrainState, part: Callable[[Generator], nn.Module], strength: float, what: str) -> None:
+    """Set every noise strength (scalar or per channel) in ``part`` of G and of G_ema to ``strength``."""
+    if not (math.isfinite(strength) and abs(strength) <= 1):
+        raise ValueError(f"{what} noise strength must be finite and in [-1, 1], got {strength}")
     with torch.no_grad():
         for G in (state.G, state.G_ema):
-            for name, p in G.synthesis.trunk[f"b{resolution}"].named_parameters():
+            for name, p in part(G).named_parameters():
                 if name.endswith("noise_strength"):
                     p.fill_(strength)
 
