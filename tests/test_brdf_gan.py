@@ -4823,6 +4823,88 @@ def test_sheet_axis_measure_and_pull(tmp_path):
     _assert_region_term_refusals("sheet_axis", _tiny_data(), tmp_path)
 
 
+def test_beard_specular_is_the_zones_band_correlation_times_its_hair_share_and_pulls(tmp_path):
+    """The beard-specular measure is, per sample, the beard zone's ``region_band_correlation`` of the decoded albedo's
+    log luminance with the log specular in three bands, then those squared, times the zone's soft hair share (which
+    carries no gradient), then the squares; a specular that is the albedo's luminance correlates +1, its inverse -1,
+    both squared to 1; blind to the normals; float64 gradcheck; the pull; refusals."""
+    from fitme_cli.reflectance.gan.data import beard_zone
+    from fitme_cli.reflectance.gan.metrics import region_band_correlation, soft_hair_share
+    from fitme_cli.reflectance.gan.networks import decode_albedo, decode_maps
+    from fitme_cli.reflectance.gan.train import _beard_specular
+
+    regions = _two_regions()
+    zone = beard_zone(16)
+    labels = torch.where(zone, 0, 255).to(torch.uint8)
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    got = _beard_specular(x, regions, TINY)
+    m = decode_maps(GanImages.split(x), TINY)
+    lum = decode_albedo(x[:, :3]).mean(1).clamp_min(1e-3).log()
+    corr = torch.stack([region_band_correlation(lum, m.specular.clamp_min(1e-3).log(), labels, lv)[:, 0, 0]
+                        for lv in range(3)], 1)
+    want = soft_hair_share(m.albedo, zone)[:, None] * torch.cat([corr, corr.square()], 1)
+    assert got.shape == (3, 12)
+    torch.testing.assert_close(got, torch.cat([want, want.square()], 1))
+    other = x.clone()
+    other[:, 4:] = -other[:, 4:]
+    torch.testing.assert_close(_beard_specular(other, regions, TINY), got)  # the normals are not read
+    share = soft_hair_share(m.albedo, zone)[:, None]
+    for sign in (1.0, -1.0):  # the specular drawn from the albedo's luminance, and from its inverse
+        tied = decode_maps(GanImages.split(x), TINY)
+        lum = m.albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
+        tied.specular[:] = 0.1 * (sign * 0.2 * (lum - lum.mean())).exp()  # log-linear in the luminance, in range
+        t = _beard_specular(encode_maps(tied, TINY).cat(), regions, TINY)[:, :6] / share
+        torch.testing.assert_close(t[:, :3], torch.full((3, 3), sign), atol=1e-3, rtol=0)
+        torch.testing.assert_close(t[:, 3:], torch.ones(3, 3), atol=2e-3, rtol=0)
+    y = (0.5 * x[:2]).double().requires_grad_()  # off the clamps' kinks at +-1
+    assert torch.autograd.gradcheck(lambda t: _beard_specular(t, regions, TINY), (y,), eps=1e-6, atol=1e-4)
+    _check_spread_pull("beard_specular", lambda y, r: _beard_specular(y, r, TINY), regions, tmp_path, 0.5, beta=0.5)
+
+
+def test_brow_hair_is_the_brows_dark_chroma_less_the_scalps_with_its_batch_spread_and_pulls(tmp_path):
+    """The brow-hair measure is the log chromaticity of the layout's brows' darkest 30 % of texels less the scalp's,
+    then its unbiased variance within the batch, then the squares; the skin between the hairs does not count; blind to
+    the specular, the normals and the albedo's scale; a batch of one is refused; float64 gradcheck; the pull."""
+    from fitme_cli.reflectance.gan.data import load_regions
+    from fitme_cli.reflectance.gan.metrics import log_chroma
+    from fitme_cli.reflectance.gan.networks import decode_albedo
+    from fitme_cli.reflectance.gan.train import _brow_hair
+
+    regions = _two_regions()
+    layout = load_regions(16)
+    brows, scalp = layout == 3, layout == 0
+    skin, hair, brow_hair = torch.tensor([0.5, 0.3, 0.2]), torch.tensor([0.06, 0.04, 0.03]), torch.tensor([0.03, 0.04, 0.06])
+    albedo = skin.view(1, 3, 1, 1).repeat(3, 1, 16, 16)
+    albedo[:, :, scalp] = hair.view(1, 3, 1)
+    albedo[1:, :, scalp] *= torch.tensor([1.5, 3.0]).view(2, 1, 1)  # a lighter hair, same colour
+    top = scalp.clone()
+    top[3:] = False
+    albedo[:, :, top] = skin.view(1, 3, 1)  # bare skin on the scalp's top rows: lighter, not counted
+    b = brows.nonzero()
+    albedo[:, :, b[0, 0], b[0, 1]] = brow_hair  # one dark (bluish) brow hair, one brow texel of skin
+    albedo[1, :, b[0, 0], b[0, 1]] = hair  # the hair's colour
+    albedo[2, :, b[0, 0], b[0, 1]] = torch.tensor([0.05, 0.03, 0.01])  # redder and yellower than the hair
+    maps = ReflectanceMaps(albedo, torch.full((3, 1, 16, 16), 0.2), torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(3, 3, 16, 16))
+    x = encode_maps(maps, TINY).cat()
+    got = _brow_hair(x, regions)
+    assert got.shape == (3, 8)
+    dec = decode_albedo(x[:, :3])  # 8-bit-free, but through the sRGB encoding: compare with what it decodes to
+    want = log_chroma(dec)[:, :, b[0, 0], b[0, 1]] - log_chroma(dec)[:, :, 5, 2]  # (5, 2): a hair texel of the scalp
+    torch.testing.assert_close(got[:, :2], want, atol=1e-4, rtol=0)
+    assert float(want[0, 1]) < -0.5 and float(want[1].abs().max()) < 0.02 and float(want[2].min()) > 0.1
+    torch.testing.assert_close(got[:, 2:4].mean(0), want.var(0), atol=1e-6, rtol=1e-4)
+    torch.testing.assert_close(got[:, 4:], got[:, :4].square())
+    other = x.clone()
+    other[:, 3:] = torch.randn(3, 4, 16, 16).clamp(-1, 1)
+    torch.testing.assert_close(_brow_hair(other, regions), got)  # the specular and the normals are not read
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        _brow_hair(x[:1], regions)
+    y = (0.5 * torch.randn(2, 7, 16, 16, generator=torch.Generator().manual_seed(3)).clamp(-1, 1)).double()
+    y.requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: _brow_hair(t, regions), (y,), eps=1e-6, atol=1e-4)
+    _check_spread_pull("brow_hair", _brow_hair, regions, tmp_path, 0.05, beta=0.5)
+
+
 def test_mottle_measure_and_pull(tmp_path):
     """The mottle measure is ``region_band_energy`` of the log linear luminance (floored at 1e-3), its two coarsest of
     up to 5 levels (4-8 and 8-16 texels at 16^2), region-major, then the squares; a patch 8 texels wide shows in them
@@ -5325,7 +5407,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--beard-specular-weight", "0.5", "--brow-hair-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--trunk-noise", "4:0.1", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5418,7 +5500,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "sheet_radial_gap" not in lines[0]
     assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
     assert "lattice_phase_gap" not in lines[0]
-    for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis", "mottle"):
+    for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis", "mottle", "beard_specular", "brow_hair"):
         assert getattr(state.train, f"{term}_weight") == 0.5 and lines[-1][f"{term}_gap"] > 0
         assert f"{term}_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0
@@ -5595,7 +5677,8 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
                       "albedo_gamut_violation_percent", "specular_slope_by_region", "forehead_row_log_chroma",
                       "eye_near_bands_by_half", "albedo_specular_link_by_region",
                       "hairline_edge_coherence", "hairline_dark_speck_depth_x1000",
-                      "beard_band_rms_bearded", "nyquist_log_ratio", "corner_log_ratio", "face_texel_checkerboard",
+                      "beard_band_rms_bearded", "beard_specular_correlation_bearded", "nyquist_log_ratio",
+                      "corner_log_ratio", "face_texel_checkerboard",
                       "spectral_top_log_ratio",
                       "relief_band_by_region",
                       "normal_symmetry_by_region", "texel_neighbour_by_region", "mouth_row_log_albedo",
@@ -5735,6 +5818,12 @@ def test_quality_metrics(dataset_dir, models_root, init_seed):
     assert list(beards) == ["data", "gan"] and all(list(v) == ["samples", "fine_mid_coarse"] for v in beards.values())
     assert all((v["fine_mid_coarse"] is None) == (v["samples"] == 0) for v in beards.values())
     assert all(len(v["fine_mid_coarse"]) == 3 and min(v["fine_mid_coarse"]) > 0 for v in beards.values() if v["samples"])
+    ties = m["beard_specular_correlation_bearded"]  # the same samples' beard-zone albedo-specular band correlations
+    assert list(ties) == ["data", "gan"] and all(
+        list(v) == ["samples", "mean_fine_mid_coarse", "mean_abs_fine_mid_coarse"] for v in ties.values())
+    assert [v["samples"] for v in ties.values()] == [v["samples"] for v in beards.values()]
+    assert all(len(v["mean_abs_fine_mid_coarse"]) == 3 and all(abs(a) <= b <= 1 for a, b in zip(
+        v["mean_fine_mid_coarse"], v["mean_abs_fine_mid_coarse"])) for v in ties.values() if v["samples"])
     rows = m["forehead_row_log_chroma"]  # per side and axis: the mean profile's peak, the per-sample peaks' quantiles
     assert list(rows) == ["data", "gan"] and all(list(v) == ["mean_profile_max_abs", "sample_max_abs_q50_q90"]
                                                  for v in rows.values())

@@ -29,7 +29,8 @@ from .metrics import (ChannelStats, StdParts, crown_flow, detail_map, detail_reg
                       region_grain_evenness, filter_fit_r2)
 from .networks import GanImages, Generator, decode_maps
 from .store import save_generator
-from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _brow_profile, _evenness_block, _eye_flat,
+from .train import (_BROW_BINS, _LAW_LEVELS, _RELIEF_PARTS, TEXEL_MAPS, _beard_specular_correlation, _brow_profile,
+                    _evenness_block, _eye_flat,
                     _grain_overlap, _hair_regions, _law_parts, _lip_ring, _lip_ring_counts, _mouth, _mouth_rows,
                     _hair_law_tail, _mottle, _normal_radial, _normal_spectra, _normal_symmetry, _relief_bands, _sheet_radial,
                     _sheet_axis, _strip_radial, _strip_slope_link, _texel_neighbour, _tilt_and_flat, copy_generator,
@@ -130,6 +131,9 @@ class _Side:
     # (``data.hairline_zones`` 1 and 2)
     hairline_specks: torch.Tensor
     beard_bands: torch.Tensor  # (N, 3) per sample, the log luminance's three finest band RMS over ``data.beard_zone``
+    # (N, 3) per sample ``train._beard_specular_correlation``: over the beard zone, the correlation of the log
+    # luminance with the log specular in bands 1-2, 2-4 and 4-8 texels
+    beard_specular: torch.Tensor
     # (N, 4) per sample ``metrics.nyquist_log_ratio`` of the albedo (mean of r, g, b), the specular, normals x and y
     nyquist: torch.Tensor
     corner: torch.Tensor  # (N, 4) per sample ``metrics.corner_log_ratio`` of the same four maps
@@ -208,7 +212,7 @@ def _filter_size(resolution: int) -> int:
 
 # the ``_Side`` fields ``_measure`` keeps per sample
 _PER_SAMPLE = ("spectra", "beard", "specular_spectra", "normal_spectra", "eye_ring", "specular_slope", "forehead_rows",
-               "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands",
+               "mouth_rows", "albedo_specular_link", "hairline_edge", "hairline_specks", "beard_bands", "beard_specular",
                "nyquist", "corner", "face_checker", "top_bands", "eye_flat", "brow_profile", "lip_ring",
                "grain_evenness", "specular_sobel", "filter_fit", "normal_tilt", "specular_law",
                "grain_overlap", "normal_radial", "sheet_radial", "lattice_phase",
@@ -441,6 +445,7 @@ def _measure(G: Generator, src: torch.Tensor | None, n: int, seed: int, truncati
             "hair_law_tail": _hair_law_tail(net, regions, G.settings)[:, :2],
             "sheet_axis": _sheet_axis(net, regions, G.settings).chunk(2, 1)[0].view(len(x), 2, 2, -1).transpose(1, 2),
             "mottle": _mottle(net, regions).chunk(2, 1)[0].view(len(x), -1, 2),
+            "beard_specular": _beard_specular_correlation(net, G.settings),
         }
         for k, v in batch.items():
             per.setdefault(k, []).append(v)
@@ -500,6 +505,16 @@ def _beard_bands_row(bands: torch.Tensor, share: torch.Tensor) -> dict:
     bearded = share >= 0.6
     mean = [round(float(v), 3) for v in bands[bearded].double().mean(0)] if bool(bearded.any()) else None
     return {"samples": int(bearded.sum()), "fine_mid_coarse": mean}
+
+
+def _beard_specular_row(corr: torch.Tensor, share: torch.Tensor) -> dict:
+    """(N, 3) ``_Side.beard_specular``, (N,) ``metrics.hair_share`` of the beard zone -> the samples at least 0.6 hair:
+    their count, their mean correlation and mean |correlation| per band (None without any)."""
+    bearded = share >= 0.6
+    c = corr[bearded].double()
+    return {"samples": int(bearded.sum()),
+            "mean_fine_mid_coarse": [round(float(v), 3) for v in c.mean(0)] if len(c) else None,
+            "mean_abs_fine_mid_coarse": [round(float(v), 3) for v in c.abs().mean(0)] if len(c) else None}
 
 
 def _beard_shares(share: torch.Tensor) -> dict:
@@ -842,6 +857,10 @@ def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, featu
         # mean RMS of the log luminance's three finest bands there (finest first), and how many samples
         "beard_band_rms_bearded": {side: _beard_bands_row(m.beard_bands, m.beard)
                                    for side, m in (("data", real), ("gan", gan))},
+        # beards missing from the specular or smeared in it (the 374.92 kimg by-eye judges): on the same samples, the
+        # beard zone's band correlation of the log luminance with the log specular; the data's is +-0.8 by beard tone
+        "beard_specular_correlation_bearded": {side: _beard_specular_row(m.beard_specular, m.beard)
+                                               for side, m in (("data", real), ("gan", gan))},
         # a left and a right field of hair meeting in a line down the crown (the 176.50 kimg person test's first tell):
         # the mean direction across the crown, column bin by bin (``metrics.crown_flow``)
         "crown_flow": None if real.crown is None else _crown(gan.crown, real.crown),

@@ -63,7 +63,7 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "brow_profile", "lip_ring", "grain_evenness", "specular_sobel", "normal_spectrum",
                  "normal_tilt", "specular_law", "grain_overlap", "normal_radial",
                  "sheet_radial", "lattice_phase", "strip_radial", "strip_slope_link", "hair_law_tail",
-                 "sheet_axis", "mottle")
+                 "sheet_axis", "mottle", "beard_specular", "brow_hair")
 
 
 @dataclass(frozen=True)
@@ -545,6 +545,20 @@ class TrainSettings:
     # 0.70 of the data's): not kept. 0: off
     mottle_weight: float = 0.0
     mottle_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: per sample, the correlation over the beard zone of the log albedo luminance's three finest
+    # Laplacian bands with the log specular's, times the zone's soft hair share (``_beard_specular``). The data draws
+    # one beard in both maps: on its bearded faces (share > 0.4, 93 of 512) the finest band's correlation is +0.8 or
+    # -0.7 by the beard's tone (sd 0.77), G_ema's at 374.92 kimg spread about 0 (mean -0.16, sd 0.47): beards "missing"
+    # from the specular or smeared in it, every by-eye judge's tell (docs/brdf_gan.md). 0: off
+    beard_specular_weight: float = 0.0
+    beard_specular_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: per sample, the log chromaticity of the brows' darker 30 % of texels less the scalp's
+    # (``_brow_hair``), and its spread within each batch. The data colours brows as the hair: between samples, brow and
+    # hair chromaticity correlate 0.59 (red-green) and 0.56 (yellow-blue) over 256 maps; G_ema's at 374.92 kimg -0.09
+    # and -0.01, the by-eye judges' "blue-grey or teal brows under brown hair" (docs/brdf_gan.md). Pulling the
+    # difference's spread to the data's narrower one ties the two. 0: off
+    brow_hair_weight: float = 0.0
+    brow_hair_beta: float = 0.99  # per-step decay of the running statistics and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -905,6 +919,14 @@ class TrainState:
     # (``_mottle``), the mottle term's target, and G's running mean of them
     mottle_target: torch.Tensor | None = None
     running_mottle: torch.Tensor | None = None
+    # (2 * 6,) float32: the data's share-weighted beard-zone band correlations of the albedo with the specular, signed
+    # and squared, and their squares (``_beard_specular``), the beard-specular term's target, and G's running mean
+    beard_specular_target: torch.Tensor | None = None
+    running_beard_specular: torch.Tensor | None = None
+    # (2 * 4,) float32: the data's brow-less-hair log chromaticity, its batch spread and their squares (``_brow_hair``),
+    # the brow-hair term's target, and G's running mean of them
+    brow_hair_target: torch.Tensor | None = None
+    running_brow_hair: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1868,7 +1890,7 @@ def _spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the gap of every ``spread_loss``
     term (screen, specular quantiles, range quantiles, eye flatness, brow profile, lip ring, grain evenness, specular
     Sobel link, normal tilt, specular law, grain overlap, normal radial, sheet radial, lattice phase, strip radial,
-    strip slope link, hair law tail, sheet axis, mottle)."""
+    strip slope link, hair law tail, sheet axis, mottle, beard specular, brow hair)."""
     return float(_spread_z(running, target)[0].abs().mean())
 
 
@@ -2074,6 +2096,64 @@ def _beard_bands(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
         share = soft_hair_share(albedo, _beard_zone(x.shape[-1]).to(x.device))
     lum = log_luminance(albedo)
     return share[:, None] * region_band_energy(lum, _beard_labels(x.shape[-1]).to(x.device), 3)[:, 0, :, 0]
+
+
+def _beard_specular(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 2 * 6) float32 (float64 for float64 maps): per sample, the correlation over
+    the beard zone (``data.beard_zone``) of the linear albedo's log luminance with the log linear specular (both
+    floored at 1e-3) in each of their three finest Laplacian bands (``metrics.region_band_correlation``; 1-2, 2-4, 4-8
+    texels), then the same with each correlation squared, all times the zone's soft hair share
+    (``metrics.soft_hair_share``, without gradient, as ``_beard_bands``), then their squares (``spread_loss``, which
+    pulls means only): the first three hold the tie's sign on average, the next three how tight it is, whatever its
+    sign (the data's is bimodal). ``s``: the specular's decoding. ``regions`` is not used: the zone is the layout's."""
+    x = x.to(torch.promote_types(x.dtype, torch.float32))
+    with torch.no_grad():
+        share = soft_hair_share(decode_albedo(x[:, :3]), _beard_zone(x.shape[-1]).to(x.device))
+    corr = _beard_specular_correlation(x, s)
+    return _with_squares(share[:, None] * torch.cat([corr, corr.square()], 1))
+
+
+def _beard_specular_correlation(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 3) in [-1, 1], x's dtype: per sample, the correlation over the beard zone of
+    the log linear albedo luminance with the log linear specular (floored at 1e-3) in their Laplacian bands 1-2, 2-4
+    and 4-8 texels (``metrics.region_band_correlation``): ``_beard_specular``'s and the card's measure. Differentiable."""
+    lum = log_luminance(decode_albedo(x[:, :3]))[:, 0]
+    spec = decode_specular(x[:, 3:4], s).clamp_min(1e-3).log()
+    labels = _beard_labels(x.shape[-1]).to(x.device)
+    return torch.stack([region_band_correlation(lum, spec, labels, level)[:, 0, 0] for level in range(3)], 1)
+
+
+_BROW_HAIR_SHARE = 0.3  # the share of each region's darkest texels (by log luminance) that ``_brow_hair`` averages
+
+
+@functools.lru_cache(maxsize=4)
+def _brows_and_scalp(resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    regions = load_regions(resolution)  # the layout's own labels, whatever the terms' regions are
+    return regions == REGIONS.index("brows"), regions == REGIONS.index("scalp")
+
+
+def _dark_chroma(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B, 3, R, R) linear albedo, (R, R) bool -> (B, 2): the mean log chromaticity (``metrics.log_chroma``) of each
+    sample's darkest ``_BROW_HAIR_SHARE`` of ``mask``'s texels by log luminance (chosen without gradient): the hairs,
+    not the skin between them."""
+    lum = log_luminance(albedo)[:, 0][:, mask]
+    with torch.no_grad():
+        dark = (lum <= lum.quantile(_BROW_HAIR_SHARE, dim=1, keepdim=True)).to(albedo.dtype)
+    chroma = log_chroma(albedo)[:, :, mask]  # (B, 2, n)
+    return (chroma * dark[:, None]).sum(2) / dark.sum(1, keepdim=True)
+
+
+def _brow_hair(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space, B >= 2 -> (B, 2 * 4) float32 (float64 for float64 maps): per sample, the log
+    chromaticity (red-green, yellow-blue) of the brows' darkest texels less the scalp's (``_dark_chroma``; the
+    layout's brows and scalp), then its squared deviation from the batch's mean times B / (B - 1)
+    (``_batch_spread``), then the squares of all four (``spread_loss``): the mean difference, and how closely the
+    brows' colour follows the hair's from face to face. ``regions`` is not used."""
+    x = x.to(torch.promote_types(x.dtype, torch.float32))
+    albedo = decode_albedo(x[:, :3])
+    brows, scalp = (m.to(x.device) for m in _brows_and_scalp(x.shape[-1]))
+    d = _dark_chroma(albedo, brows) - _dark_chroma(albedo, scalp)
+    return _with_squares(torch.cat([d, _batch_spread(d, "_brow_hair")], 1))
 
 
 def _albedo_hairline_share(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
@@ -2299,7 +2379,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "lattice_phase": _lattice_phase, "strip_radial": lambda x, regions: _strip_radial(x, regions, gan),
             "strip_slope_link": lambda x, regions: _strip_slope_link(x, regions, gan),
             "hair_law_tail": lambda x, regions: _hair_law_tail(x, regions, gan),
-            "sheet_axis": lambda x, regions: _sheet_axis(x, regions, gan), "mottle": _mottle}
+            "sheet_axis": lambda x, regions: _sheet_axis(x, regions, gan), "mottle": _mottle,
+            "beard_specular": lambda x, regions: _beard_specular(x, regions, gan), "brow_hair": _brow_hair}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -2312,7 +2393,7 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and mouth_rows: mean
 # |running - target|; screen, specular_quantile, range_quantile, eye_flat, brow_profile, lip_ring, grain_evenness,
 # specular_sobel, normal_tilt, specular_law, grain_overlap, normal_radial, sheet_radial, lattice_phase, strip_radial,
-# strip_slope_link, hair_law_tail, sheet_axis and mottle: mean |gap|
+# strip_slope_link, hair_law_tail, sheet_axis, mottle, beard_specular and brow_hair: mean |gap|
 # in the data's spreads (``_spread_gap``); texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the
 # same at ``_SPECK_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
@@ -2343,7 +2424,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "sheet_radial": (spread_loss, _spread_gap), "lattice_phase": (spread_loss, _spread_gap),
                   "strip_radial": (spread_loss, _spread_gap), "strip_slope_link": (spread_loss, _spread_gap),
                   "hair_law_tail": (spread_loss, _spread_gap), "sheet_axis": (spread_loss, _spread_gap),
-                  "mottle": (spread_loss, _spread_gap)}
+                  "mottle": (spread_loss, _spread_gap), "beard_specular": (spread_loss, _spread_gap),
+                  "brow_hair": (spread_loss, _spread_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
