@@ -499,22 +499,27 @@ def _walks(G: Generator, n: int, steps: int, seed: int, truncation_psi: float):
         yield w[:1] + t * (w[1:] - w[:1])
 
 
+_BEARDED = 0.6  # a sample whose beard zone is at least this much hair (``metrics.hair_share``) counts as bearded
+
+
+def _bearded_mean(values: torch.Tensor, share: torch.Tensor) -> list[float] | None:
+    """(N, k) per-sample values, (N,) ``metrics.hair_share`` of the beard zone -> the bearded samples' mean, rounded
+    (None without any)."""
+    bearded = share >= _BEARDED
+    return [round(float(v), 3) for v in values[bearded].double().mean(0)] if bool(bearded.any()) else None
+
+
 def _beard_bands_row(bands: torch.Tensor, share: torch.Tensor) -> dict:
-    """(N, 3) ``_Side.beard_bands``, (N,) ``metrics.hair_share`` of the beard zone -> the samples at least 0.6 hair:
-    their count and their mean band RMS (None without any)."""
-    bearded = share >= 0.6
-    mean = [round(float(v), 3) for v in bands[bearded].double().mean(0)] if bool(bearded.any()) else None
-    return {"samples": int(bearded.sum()), "fine_mid_coarse": mean}
+    """(N, 3) ``_Side.beard_bands``, (N,) ``metrics.hair_share`` of the beard zone -> the bearded samples
+    (``_BEARDED``): their count and their mean band RMS (None without any)."""
+    return {"samples": int((share >= _BEARDED).sum()), "fine_mid_coarse": _bearded_mean(bands, share)}
 
 
 def _beard_specular_row(corr: torch.Tensor, share: torch.Tensor) -> dict:
-    """(N, 3) ``_Side.beard_specular``, (N,) ``metrics.hair_share`` of the beard zone -> the samples at least 0.6 hair:
-    their count, their mean correlation and mean |correlation| per band (None without any)."""
-    bearded = share >= 0.6
-    c = corr[bearded].double()
-    return {"samples": int(bearded.sum()),
-            "mean_fine_mid_coarse": [round(float(v), 3) for v in c.mean(0)] if len(c) else None,
-            "mean_abs_fine_mid_coarse": [round(float(v), 3) for v in c.abs().mean(0)] if len(c) else None}
+    """(N, 3) ``_Side.beard_specular``, (N,) ``metrics.hair_share`` of the beard zone -> the bearded samples
+    (``_BEARDED``): their count, their mean correlation and mean |correlation| per band (None without any)."""
+    return {"samples": int((share >= _BEARDED).sum()), "mean_fine_mid_coarse": _bearded_mean(corr, share),
+            "mean_abs_fine_mid_coarse": _bearded_mean(corr.abs(), share)}
 
 
 def _beard_shares(share: torch.Tensor) -> dict:
@@ -523,7 +528,7 @@ def _beard_shares(share: torch.Tensor) -> dict:
     q = share.double().quantile(torch.tensor([0.25, 0.5, 0.75, 0.9], dtype=torch.float64))
     return {"q25_q50_q75_q90": [round(float(v), 3) for v in q],
             "samples_at_least_0.3": round(float((share >= 0.3).double().mean()), 3),
-            "samples_at_least_0.6": round(float((share >= 0.6).double().mean()), 3)}
+            "samples_at_least_0.6": round(float((share >= _BEARDED).double().mean()), 3)}
 
 
 def _compare(G: Generator, gan: _Side, real: _Side, regions: torch.Tensor, features: torch.Tensor, seed: int,
