@@ -1143,30 +1143,35 @@ def _check_shifted_pull(name: str, measure, regions: torch.Tensor, data: torch.T
 
 def _check_spread_pull(name: str, measure, regions: torch.Tensor, run_dir, weight: float,
                        spread: float | None = None, first_gap: tuple[float, float] = (0.7, 1.3),
-                       beta: float | None = None) -> None:
+                       beta: float | None = None, shared: bool = False) -> None:
     """A term of ``train.spread_loss`` (``name``; ``measure`` gives m statistics, then their squares): same seed, same
     steps, G's statistics end nearer, in units of a spread (``spread``, or each one's over G's samples), a target one
     spread above and one below where they start than without the term (which may drift several spreads: a fresh G's
     grain grows); the first step's gap is ~1 spread (within ``first_gap``); the term's refusals. ``beta``: the term's
     decay, else the default 0.99, whose running mean hardly moves in the test's 30 steps, so the term pushes one way
-    throughout and may overshoot by as much as a fresh G drifts."""
+    throughout and may overshoot by as much as a fresh G drifts. ``shared``: a term of ``train.share_spread_loss``
+    (m statistics and their squares, each times a share, then the share), its moments taken over the share."""
     from fitme_cli.reflectance.gan.train import _SPREAD_FLOOR
 
     z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
 
+    def moments(v):  # the statistics' means and mean squares
+        return (v[:-1] / v[-1]).chunk(2) if shared else v.chunk(2)
+
     def spread_of(base):
-        m, sq = base.chunk(2)
+        m, sq = moments(base)
         sd = (sq - m.square()).clamp_min(0).sqrt() if spread is None else torch.full_like(m, spread)
         return m, sd.clamp_min(_SPREAD_FLOOR)
 
     def moved(w, sign):
         def target_of(base):  # the means one spread over or under
             m, sd = spread_of(base)
-            return torch.cat([m + sign * sd, sd.square() + (m + sign * sd).square()])
+            target = torch.cat([m + sign * sd, sd.square() + (m + sign * sd).square()])
+            return torch.cat([base[-1] * target, base[-1:]]) if shared else target
 
         base, now, out = _pulled(name, w, measure, target_of, regions, _tiny_data(), z, beta)
         m, sd = spread_of(base)
-        return float(((now.chunk(2)[0] - m) / sd).mean()), out
+        return float(((moments(now)[0] - m) / sd).mean()), out
 
     off, l_off = moved(0.0, 1)
     up, l_up = moved(weight, 1)
@@ -4861,6 +4866,77 @@ def test_beard_specular_is_the_zones_band_correlation_times_its_hair_share_and_p
     _check_spread_pull("beard_specular", lambda y, r: _beard_specular(y, r, TINY), regions, tmp_path, 0.5, beta=0.5)
 
 
+def test_beard_texture_is_the_zones_band_shape_times_its_hair_share_and_pulls(tmp_path):
+    """The beard-texture measure is, per sample, the beard zone's ``region_band_statistics`` columns for the skewness,
+    log kurtosis and neighbour correlation of the decoded albedo's log luminance and the log specular in three bands,
+    times the zone's soft hair share, then their squares times it, then the share (no gradient through it); a bare
+    zone weighs next to nothing; blind to the normals; float64 gradcheck. Its loss compares bearded faces only: G
+    with half the data's share at the same share-weighted moments has no gap and no pull. The pull moves G's
+    share-weighted means toward a target one spread above and one below; refusals."""
+    from fitme_cli.reflectance.gan.data import beard_zone
+    from fitme_cli.reflectance.gan.metrics import band_statistic_names, region_band_statistics, soft_hair_share
+    from fitme_cli.reflectance.gan.networks import decode_albedo, decode_maps
+    from fitme_cli.reflectance.gan.train import _Z_CAP, _beard_texture, _share_spread_gap, share_spread_loss
+
+    regions = _two_regions()
+    zone = beard_zone(16)
+    labels = torch.where(zone, 0, 255).to(torch.uint8)
+    x = torch.randn(3, 7, 16, 16, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    got = _beard_texture(x, regions, TINY)
+    assert got.shape == (3, 2 * 18 + 1)
+    m = decode_maps(GanImages.split(x), TINY)
+    maps = torch.cat([decode_albedo(x[:, :3]).mean(1, keepdim=True).clamp_min(1e-3).log(),
+                      m.specular.clamp_min(1e-3).log()], 1)
+    names = band_statistic_names(("luminance", "specular"), ("zone",), 3)
+    keep = [i for i, n in enumerate(names) if n.split()[1] in ("skew", "log_kurtosis", "neighbour")]
+    assert len(keep) == 18 and names[keep[0]] == "band0 skew luminance zone"
+    stats = region_band_statistics(maps, labels, 3)[:, keep]
+    share = soft_hair_share(m.albedo, zone)[:, None]
+    assert float(share.min()) > 0.05
+    torch.testing.assert_close(got, torch.cat([share * stats, share * stats.square(), share], 1))
+    other = x.clone()
+    other[:, 4:] = -other[:, 4:]
+    torch.testing.assert_close(_beard_texture(other, regions, TINY), got)  # the normals are not read
+    bare = encode_maps(ReflectanceMaps(torch.tensor([0.5, 0.3, 0.2]).view(1, 3, 1, 1).expand(1, 3, 16, 16),
+                                       m.specular[:1], m.normals[:1]), TINY).cat()
+    assert float(_beard_texture(bare, regions, TINY)[0, -1]) < 0.01  # no hair: next to no weight
+    y = (0.5 * x[:2]).double().requires_grad_()  # off the clamps' kinks at +-1
+    # the share moves with x but takes no gradient: checked over it, where it cancels
+    assert torch.autograd.gradcheck(lambda t: (lambda v: v[:, :36] / v[:, 36:])(_beard_texture(t, regions, TINY)), (y,),
+                                    eps=1e-6, atol=1e-4)
+    assert float(torch.autograd.grad(_beard_texture(y, regions, TINY)[:, 36].sum(), y)[0].abs().max()) == 0
+
+    # the loss: per share, not per sample
+    mean, sd = torch.tensor([0.5, -1.0]), torch.tensor([0.2, 0.4])
+
+    def moments(share, mu):  # a batch mean of _beard_texture's layout for these share-weighted moments
+        return torch.cat([share * mu, share * (sd.square() + mean.square()), torch.tensor([share])])
+
+    target = moments(0.4, mean)
+    stats = torch.randn(4, 5, requires_grad=True)
+    for share in (0.4, 0.2, 0.05):  # fewer bearded faces, the same beards: no gap, no pull
+        assert _share_spread_gap(moments(share, mean), target) < 1e-6
+        share_spread_loss(stats, moments(share, mean), target).backward()
+        assert float(stats.grad.abs().max()) < 1e-6
+    running = moments(0.2, mean - torch.tensor([0.1, 0.0]))  # the first half a spread low
+    assert abs(_share_spread_gap(running, target) - 0.25) < 1e-6
+    loss = share_spread_loss(stats, running, target)
+    stats.grad = None
+    loss.backward()  # -2 z / sd / (G's mean share) / B on each sample's first statistic
+    torch.testing.assert_close(stats.grad[:, 0], torch.full((4,), -2 * 0.5 / 0.2 / 0.2 / 4))
+    assert float(stats.grad[:, 1:].abs().max()) == 0
+    far = moments(0.2, mean + torch.tensor([100.0, 0.0]))
+    assert abs(_share_spread_gap(far, target) - _Z_CAP / 2) < 1e-6  # a gap counts at most _Z_CAP spreads
+    flat = torch.cat([target[:2], target[:2].square() / 0.4, target[-1:]])  # no spread in the data: floored
+    assert _share_spread_gap(moments(0.4, mean + 1), flat) == pytest.approx(_Z_CAP)
+    for bad in ((stats[:, :4], running, target), (stats, running[:4], target), (stats[0], running, target)):
+        with pytest.raises(ValueError, match="expected \\(B, 2m \\+ 1\\) stats"):
+            share_spread_loss(*bad)
+
+    _check_spread_pull("beard_texture", lambda v, r: _beard_texture(v, r, TINY), regions, tmp_path, 0.5, beta=0.5,
+                       shared=True)
+
+
 def test_brow_hair_is_the_brows_dark_chroma_less_the_scalps_with_its_batch_spread_and_pulls(tmp_path):
     """The brow-hair measure is the log chromaticity of the layout's brows' darkest 30 % of texels less the scalp's,
     then its unbiased variance within the batch, then the squares; the skin between the hairs does not count; blind to
@@ -5407,7 +5483,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--beard-specular-weight", "0.5", "--brow-hair-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--beard-specular-weight", "0.5", "--brow-hair-weight", "0.5", "--beard-texture-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--trunk-noise", "4:0.1", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5500,7 +5576,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert "sheet_radial_gap" not in lines[0]
     assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
     assert "lattice_phase_gap" not in lines[0]
-    for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis", "mottle", "beard_specular", "brow_hair"):
+    for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis", "mottle", "beard_specular", "brow_hair",
+                 "beard_texture"):
         assert getattr(state.train, f"{term}_weight") == 0.5 and lines[-1][f"{term}_gap"] > 0
         assert f"{term}_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0

@@ -59,7 +59,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "normal_spectrum_weight", "normal_tilt_weight", "specular_law_weight",
                 "grain_overlap_weight", "normal_radial_weight", "sheet_radial_weight", "lattice_phase_weight",
                 "strip_radial_weight", "strip_slope_link_weight", "hair_law_tail_weight", "sheet_axis_weight",
-                "mottle_weight", "beard_specular_weight", "brow_hair_weight",
+                "mottle_weight", "beard_specular_weight", "brow_hair_weight", "beard_texture_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -366,6 +366,11 @@ def _res_strength(ctx: click.Context, param: click.Parameter, values: tuple[str,
               help="Pull the colour of each face's brows less its hair's (the log chromaticity of each region's "
                    "darkest 30 % of texels) and its spread between faces to the data's in units of its spread: brows "
                    "coloured as the hair (not in the paper; may change on --resume). [0]")
+@click.option("--beard-texture-weight", type=click.FloatRange(min=0),
+              help="Pull the shape of each face's beard (the skewness, kurtosis and texel-to-texel correlation of "
+                   "the log luminance's and log specular's three finest bands over the beard zone, times its hair "
+                   "share) to the data's in units of its spread: even speckle or strands, not stains and clumps (not "
+                   "in the paper; may change on --resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

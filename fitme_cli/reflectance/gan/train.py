@@ -35,7 +35,8 @@ from .metrics import (crown_flow, detail_link, detail_map, gamut_excess, gaussia
                       region_slope_link, region_specular_link, region_spectrum, region_texel_grain, region_texel_tails,
                       ring_profile, row_profile, soft_hair_share, soft_hairline_share, texel_lattice, texel_phase,
                       hairline_edge_coherence, dark_speck_depth, nyquist_log_ratio, corner_log_ratio, band_log_ratio,
-                      region_band_skew, region_band_neighbour, region_band_statistics, region_quantiles, local_range,
+                      region_band_skew, region_band_neighbour, region_band_statistics, band_statistic_names,
+                      region_quantiles, local_range,
                       region_grain_evenness, region_flat_share, region_band_magnitude_correlation,
                       RADIAL_EDGES, radial_log_profile, AXIS_EDGES, axis_log_profile)
 from .networks import (Discriminator, GanImages, GanSettings, Generator, PatchDiscriminator, decode_albedo, decode_maps,
@@ -46,8 +47,8 @@ __all__ = ["TrainSettings", "TrainState", "new_state", "set_learning_rates", "tr
            "copy_generator", "batch_moments", "data_moments", "moment_loss", "drift_loss", "update_running",
            "data_link", "link_loss", "data_coherence", "coherence_loss", "data_band", "band_loss",
            "data_spectrum", "spectrum_loss", "colour_loss", "data_tone_order", "order_weights", "tone_order_loss",
-           "tail_loss", "spread_loss", "set_branch_noise", "set_trunk_noise", "clear_running", "can_compile",
-           "compile_synthesis", "random_crops",
+           "tail_loss", "spread_loss", "share_spread_loss", "set_branch_noise", "set_trunk_noise", "clear_running",
+           "can_compile", "compile_synthesis", "random_crops",
            "new_patch_discriminator", "sync_patch_discriminator", "focus_texels", "TEXEL_MAPS", "texel_maps",
            "sheet_ranges", "sheet_maps", "set_layout_image"]
 
@@ -63,7 +64,7 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "brow_profile", "lip_ring", "grain_evenness", "specular_sobel", "normal_spectrum",
                  "normal_tilt", "specular_law", "grain_overlap", "normal_radial",
                  "sheet_radial", "lattice_phase", "strip_radial", "strip_slope_link", "hair_law_tail",
-                 "sheet_axis", "mottle", "beard_specular", "brow_hair")
+                 "sheet_axis", "mottle", "beard_specular", "brow_hair", "beard_texture")
 
 
 @dataclass(frozen=True)
@@ -559,6 +560,15 @@ class TrainSettings:
     # difference's spread to the data's narrower one ties the two. 0: off
     brow_hair_weight: float = 0.0
     brow_hair_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: per sample, over the beard zone, the skewness, log kurtosis and neighbour correlation of the log
+    # albedo luminance's and the log specular's three finest Laplacian bands, times the zone's soft hair share
+    # (``_beard_texture``). On bearded faces (share > 0.4) the data's luminance bands are near-Gaussian, log kurtosis
+    # 1.27-1.45 and skew -0.43 to +0.17; G_ema's at 374.92 kimg 2.29-2.95 and -2.24 to -1.35: a few dark stains and
+    # 3-5-texel clumps where the data draws even speckle or strands, the by-eye judges' "blotchy beards" and "dark
+    # stains at the jaw's corners" (docs/brdf_gan.md). At 0.3 D took over and the beards lost band energy; at 0.1 to
+    # 377.01 kimg G_ema's gap went 0.90 -> 0.31 spreads, but by-eye judges still told G (90 of 96): not kept. 0: off
+    beard_texture_weight: float = 0.0
+    beard_texture_beta: float = 0.99  # per-step decay of the running statistics and their squares
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -927,6 +937,10 @@ class TrainState:
     # the brow-hair term's target, and G's running mean of them
     brow_hair_target: torch.Tensor | None = None
     running_brow_hair: torch.Tensor | None = None
+    # (2 * 18 + 1,) float32: the data's beard-zone band shape statistics and their squares, each times the zone's hair
+    # share, and the share (``_beard_texture``), the beard-texture term's target, and G's running mean of them
+    beard_texture_target: torch.Tensor | None = None
+    running_beard_texture: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1886,6 +1900,40 @@ def spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor
     return -2 * ((z / sd).to(stats).detach() * stats[:, :z.shape[0]].mean(0)).sum()
 
 
+_SHARE_FLOOR = 0.02  # ``share_spread_loss``: the smallest mean share it divides by (the data's beard zone: ~0.21)
+
+
+def _share_z(running: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """running, target (2m + 1,): m statistics times a per-sample share, their squares times it, the share, each
+    averaged over samples -> ((m,) gaps target - running of the share-weighted means (each over its own mean share) in
+    units of the target's share-weighted spread, capped at ``_Z_CAP``; (m,) that spread, floored at
+    ``_SPREAD_FLOOR``)."""
+    m = (target.shape[0] - 1) // 2
+    t_share, r_share = target[-1].clamp_min(_SHARE_FLOOR), running[-1].clamp_min(_SHARE_FLOOR)
+    t_mean = target[:m] / t_share
+    sd = (target[m:2 * m] / t_share - t_mean.square()).clamp_min(0).sqrt().clamp_min(_SPREAD_FLOOR)
+    return ((t_mean - running[:m] / r_share) / sd).clamp(-_Z_CAP, _Z_CAP), sd
+
+
+def share_spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """stats: (B, 2m + 1) of a fake batch (``_beard_texture``'s layout: m statistics times each sample's share, their
+    squares times it, the share, which takes no gradient), running and target (2m + 1,): ``spread_loss`` on the moments
+    of the share-weighted samples (``_share_z``), each sample's pull in proportion to its share over G's running mean
+    share, so that how many samples have a share does not move the statistics."""
+    n = target.shape[0] if target.ndim == 1 else -1
+    if stats.ndim != 2 or n < 3 or n % 2 == 0 or stats.shape[1] != n or running.shape != target.shape:
+        raise ValueError(f"share_spread_loss: expected (B, 2m + 1) stats and (2m + 1,) running and target, m >= 1, got "
+                         f"{tuple(stats.shape)}, {tuple(running.shape)} and {tuple(target.shape)}")
+    z, sd = _share_z(running, target)
+    pull = (z / sd).to(stats).detach() / running[-1].clamp_min(_SHARE_FLOOR).to(stats)
+    return -2 * (pull * stats[:, :z.shape[0]].mean(0)).sum()
+
+
+def _share_spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean |gap| of ``share_spread_loss``'s statistics in units of the data's share-weighted spread (``_share_z``)."""
+    return float(_share_z(running, target)[0].abs().mean())
+
+
 def _spread_gap(running: torch.Tensor, target: torch.Tensor) -> float:
     """Mean |gap| of the statistics in units of the data's spread (``_spread_z``): the gap of every ``spread_loss``
     term (screen, specular quantiles, range quantiles, eye flatness, brow profile, lip ring, grain evenness, specular
@@ -2121,6 +2169,37 @@ def _beard_specular_correlation(x: torch.Tensor, s: GanSettings) -> torch.Tensor
     spec = decode_specular(x[:, 3:4], s).clamp_min(1e-3).log()
     labels = _beard_labels(x.shape[-1]).to(x.device)
     return torch.stack([region_band_correlation(lum, spec, labels, level)[:, 0, 0] for level in range(3)], 1)
+
+
+_BEARD_TEXTURE_STATISTICS = ("skew", "log_kurtosis", "neighbour")  # of ``metrics.BAND_STATISTICS``
+
+
+@functools.lru_cache(maxsize=1)
+def _beard_texture_columns() -> torch.Tensor:
+    names = band_statistic_names(("luminance", "specular"), ("zone",), 3)
+    return torch.tensor([i for i, n in enumerate(names) if n.split()[1] in _BEARD_TEXTURE_STATISTICS])
+
+
+def _beard_texture(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 7, R, R) network space, R divisible by 8 -> (B, 2 * 18 + 1) float32 (float64 for float64 maps): per
+    sample, over the beard zone (``data.beard_zone``), the shape of the linear albedo's log luminance and the log
+    linear specular (both floored at 1e-3) in their three finest Laplacian bands (1-2, 2-4, 4-8 texels): each band's
+    skewness, log kurtosis and correlation with the next texel along u (``metrics.region_band_statistics``, in its
+    column order), times the zone's soft hair share (``metrics.soft_hair_share``, without gradient, as
+    ``_beard_bands``), then their squares times the share, then the share: the moments of bearded faces
+    (``share_spread_loss``), which share-weighted means alone would mix with how many faces are bearded (G_ema's 13 %
+    at 374.92 kimg at a log kurtosis of 2.95, the data's 18 % at 1.45: 0.33 spreads apart on average, 0.90 over the
+    share). The band energy term holds how much detail a beard has, this one its shape: even speckle or strands
+    against a few stains and clumps. ``s``: the specular's decoding. ``regions`` is not used."""
+    x = x.to(torch.promote_types(x.dtype, torch.float32))
+    albedo = decode_albedo(x[:, :3])
+    zone = _beard_zone(x.shape[-1]).to(x.device)
+    with torch.no_grad():
+        share = soft_hair_share(albedo, zone)
+    maps = torch.cat([log_luminance(albedo), decode_specular(x[:, 3:4], s).clamp_min(1e-3).log()], 1)
+    stats = region_band_statistics(maps, _beard_labels(x.shape[-1]).to(x.device), 3)
+    stats = stats[:, _beard_texture_columns().to(x.device)]
+    return torch.cat([share[:, None] * stats, share[:, None] * stats.square(), share[:, None]], 1)
 
 
 _BROW_HAIR_SHARE = 0.3  # the share of each region's darkest texels (by log luminance) that ``_brow_hair`` averages
@@ -2380,7 +2459,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "strip_slope_link": lambda x, regions: _strip_slope_link(x, regions, gan),
             "hair_law_tail": lambda x, regions: _hair_law_tail(x, regions, gan),
             "sheet_axis": lambda x, regions: _sheet_axis(x, regions, gan), "mottle": _mottle,
-            "beard_specular": lambda x, regions: _beard_specular(x, regions, gan), "brow_hair": _brow_hair}
+            "beard_specular": lambda x, regions: _beard_specular(x, regions, gan), "brow_hair": _brow_hair,
+            "beard_texture": lambda x, regions: _beard_texture(x, regions, gan)}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -2394,8 +2474,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # |running - target|; screen, specular_quantile, range_quantile, eye_flat, brow_profile, lip_ring, grain_evenness,
 # specular_sobel, normal_tilt, specular_law, grain_overlap, normal_radial, sheet_radial, lattice_phase, strip_radial,
 # strip_slope_link, hair_law_tail, sheet_axis, mottle, beard_specular and brow_hair: mean |gap|
-# in the data's spreads (``_spread_gap``); texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the
-# same at ``_SPECK_FLOOR``
+# in the data's spreads (``_spread_gap``); beard_texture: the same for bearded faces (``_share_spread_gap``);
+# texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
                   "colour": (colour_loss, _colour_gap), "beard": (coherence_loss, _abs_gap),
@@ -2425,7 +2505,7 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "strip_radial": (spread_loss, _spread_gap), "strip_slope_link": (spread_loss, _spread_gap),
                   "hair_law_tail": (spread_loss, _spread_gap), "sheet_axis": (spread_loss, _spread_gap),
                   "mottle": (spread_loss, _spread_gap), "beard_specular": (spread_loss, _spread_gap),
-                  "brow_hair": (spread_loss, _spread_gap)}
+                  "brow_hair": (spread_loss, _spread_gap), "beard_texture": (share_spread_loss, _share_spread_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
