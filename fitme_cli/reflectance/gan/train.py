@@ -1908,11 +1908,8 @@ def _share_z(running: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor,
     averaged over samples -> ((m,) gaps target - running of the share-weighted means (each over its own mean share) in
     units of the target's share-weighted spread, capped at ``_Z_CAP``; (m,) that spread, floored at
     ``_SPREAD_FLOOR``)."""
-    m = (target.shape[0] - 1) // 2
-    t_share, r_share = target[-1].clamp_min(_SHARE_FLOOR), running[-1].clamp_min(_SHARE_FLOOR)
-    t_mean = target[:m] / t_share
-    sd = (target[m:2 * m] / t_share - t_mean.square()).clamp_min(0).sqrt().clamp_min(_SPREAD_FLOOR)
-    return ((t_mean - running[:m] / r_share) / sd).clamp(-_Z_CAP, _Z_CAP), sd
+    return _spread_z(running[:-1] / running[-1].clamp_min(_SHARE_FLOOR),
+                     target[:-1] / target[-1].clamp_min(_SHARE_FLOOR))
 
 
 def share_spread_loss(stats: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -2140,10 +2137,16 @@ def _beard_bands(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     times the sample's soft hair share of the zone (``metrics.soft_hair_share``, without gradient: the beard term
     holds how many faces are bearded, this one what their beards look like). ``regions`` is not used."""
     albedo = decode_albedo(x[:, :3])
-    with torch.no_grad():
-        share = soft_hair_share(albedo, _beard_zone(x.shape[-1]).to(x.device))
     lum = log_luminance(albedo)
-    return share[:, None] * region_band_energy(lum, _beard_labels(x.shape[-1]).to(x.device), 3)[:, 0, :, 0]
+    labels = _beard_labels(x.shape[-1]).to(x.device)
+    return _beard_weight(albedo)[:, None] * region_band_energy(lum, labels, 3)[:, 0, :, 0]
+
+
+def _beard_weight(albedo: torch.Tensor) -> torch.Tensor:
+    """(B, 3, R, R) linear albedo -> (B,): the beard zone's soft hair share (``metrics.soft_hair_share``), without
+    gradient: the beard-zone terms' per-face weight, which the beard term, not they, holds."""
+    with torch.no_grad():
+        return soft_hair_share(albedo, _beard_zone(albedo.shape[-1]).to(albedo.device))
 
 
 def _beard_specular(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
@@ -2155,20 +2158,25 @@ def _beard_specular(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> t
     pulls means only): the first three hold the tie's sign on average, the next three how tight it is, whatever its
     sign (the data's is bimodal). ``s``: the specular's decoding. ``regions`` is not used: the zone is the layout's."""
     x = x.to(torch.promote_types(x.dtype, torch.float32))
-    with torch.no_grad():
-        share = soft_hair_share(decode_albedo(x[:, :3]), _beard_zone(x.shape[-1]).to(x.device))
     corr = _beard_specular_correlation(x, s)
-    return _with_squares(share[:, None] * torch.cat([corr, corr.square()], 1))
+    return _with_squares(_beard_weight(decode_albedo(x[:, :3]))[:, None] * torch.cat([corr, corr.square()], 1))
 
 
 def _beard_specular_correlation(x: torch.Tensor, s: GanSettings) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 3) in [-1, 1], x's dtype: per sample, the correlation over the beard zone of
     the log linear albedo luminance with the log linear specular (floored at 1e-3) in their Laplacian bands 1-2, 2-4
     and 4-8 texels (``metrics.region_band_correlation``): ``_beard_specular``'s and the card's measure. Differentiable."""
-    lum = log_luminance(decode_albedo(x[:, :3]))[:, 0]
-    spec = decode_specular(x[:, 3:4], s).clamp_min(1e-3).log()
+    maps = _log_luminance_and_specular(decode_albedo(x[:, :3]), x, s)
     labels = _beard_labels(x.shape[-1]).to(x.device)
-    return torch.stack([region_band_correlation(lum, spec, labels, level)[:, 0, 0] for level in range(3)], 1)
+    return torch.stack([region_band_correlation(maps[:, 0], maps[:, 1:], labels, level)[:, 0, 0] for level in range(3)],
+                       1)
+
+
+def _log_luminance_and_specular(albedo: torch.Tensor, x: torch.Tensor, s: GanSettings) -> torch.Tensor:
+    """(B, 3, R, R) linear albedo, (B, 7, R, R) network space -> (B, 2, R, R): the albedo's log luminance
+    (``metrics.log_luminance``) and the log linear specular (decoded by ``s``), both floored at 1e-3: the beard-zone
+    terms' maps."""
+    return torch.cat([log_luminance(albedo), decode_specular(x[:, 3:4], s).clamp_min(1e-3).log()], 1)
 
 
 _BEARD_TEXTURE_STATISTICS = ("skew", "log_kurtosis", "neighbour")  # of ``metrics.BAND_STATISTICS``
@@ -2193,13 +2201,11 @@ def _beard_texture(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> to
     against a few stains and clumps. ``s``: the specular's decoding. ``regions`` is not used."""
     x = x.to(torch.promote_types(x.dtype, torch.float32))
     albedo = decode_albedo(x[:, :3])
-    zone = _beard_zone(x.shape[-1]).to(x.device)
-    with torch.no_grad():
-        share = soft_hair_share(albedo, zone)
-    maps = torch.cat([log_luminance(albedo), decode_specular(x[:, 3:4], s).clamp_min(1e-3).log()], 1)
-    stats = region_band_statistics(maps, _beard_labels(x.shape[-1]).to(x.device), 3)
+    share = _beard_weight(albedo)[:, None]
+    labels = _beard_labels(x.shape[-1]).to(x.device)
+    stats = region_band_statistics(_log_luminance_and_specular(albedo, x, s), labels, 3)
     stats = stats[:, _beard_texture_columns().to(x.device)]
-    return torch.cat([share[:, None] * stats, share[:, None] * stats.square(), share[:, None]], 1)
+    return torch.cat([share * stats, share * stats.square(), share], 1)
 
 
 _BROW_HAIR_SHARE = 0.3  # the share of each region's darkest texels (by log luminance) that ``_brow_hair`` averages
