@@ -2251,42 +2251,51 @@ def test_region_edge_sharpness_matches_reference_known_values_gradients_and_bad_
         region_edge_sharpness(x, regions, 12)
 
 
-def test_edge_sharpness_is_the_log_luminances_and_blind_to_specular_and_normals():
-    from fitme_cli.reflectance.gan.metrics import region_edge_sharpness
+@pytest.mark.parametrize("name", ["edge_sharpness", "chroma_edge"])
+def test_edge_sharpness_is_the_log_luminances_or_chromaticitys_and_blind_to_specular_and_normals(name):
+    """The edge-sharpness term measures the albedo's log luminance per region, the chroma-edge term its log
+    chromaticity (red-green, yellow-blue); neither reads the specular or the normals."""
+    from fitme_cli.reflectance.gan.metrics import log_chroma, region_edge_sharpness
     from fitme_cli.reflectance.gan.networks import decode_maps
-    from fitme_cli.reflectance.gan.train import _edge_sharpness
+    from fitme_cli.reflectance.gan.train import _chroma_edge, _edge_sharpness
 
+    measure = {"edge_sharpness": _edge_sharpness, "chroma_edge": _chroma_edge}[name]
     regions = _two_regions()
     x = _tiny_data().float()
     x[:, :3] += 0.2 * torch.rand(x[:, :3].shape, generator=torch.Generator().manual_seed(3))
-    got = _edge_sharpness(x, regions)
-    assert got.shape == (16, 2)
-    lum = decode_maps(GanImages.split(x), TINY).albedo.mean(1, keepdim=True).clamp_min(1e-3).log()
-    torch.testing.assert_close(got, region_edge_sharpness(lum, regions).flatten(1))
+    got = measure(x, regions)
+    albedo = decode_maps(GanImages.split(x), TINY).albedo
+    channels = albedo.mean(1, keepdim=True).clamp_min(1e-3).log() if name == "edge_sharpness" else log_chroma(albedo)
+    assert got.shape == (16, 2 * channels.shape[1])
+    torch.testing.assert_close(got, region_edge_sharpness(channels, regions).flatten(1))
     other = x.clone()
     other[:, 3:] = -other[:, 3:]
-    torch.testing.assert_close(_edge_sharpness(other, regions), got)
+    torch.testing.assert_close(measure(other, regions), got)
 
 
-def test_edge_sharpness_weight_moves_the_fakes_sharpness(tmp_path):
-    """Same seed, same steps: the edge-sharpness term pulls G's sharpness toward a target above and one below where
-    it ends without the term; it needs its regions and target, and bad settings are refused."""
-    from fitme_cli.reflectance.gan.train import _edge_sharpness
+@pytest.mark.parametrize("name", ["edge_sharpness", "chroma_edge"])
+def test_edge_sharpness_weight_moves_the_fakes_sharpness(tmp_path, name):
+    """Same seed, same steps: the edge-sharpness term (of the log luminance, or of the log chromaticity) pulls G's
+    sharpness toward a target above and one below where it ends without the term; it needs its regions and target,
+    and bad settings are refused."""
+    from fitme_cli.reflectance.gan.train import _chroma_edge, _edge_sharpness
 
+    measure = {"edge_sharpness": _edge_sharpness, "chroma_edge": _chroma_edge}[name]
     z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
     regions, data = _two_regions(), _tiny_data()
-    _, off, l_off = _pulled("edge_sharpness", 0.0, _edge_sharpness, lambda b: b, regions, data, z)
+    _, off, l_off = _pulled(name, 0.0, measure, lambda b: b, regions, data, z)
 
     def run(shift):
-        _, now, out = _pulled("edge_sharpness", 20.0, _edge_sharpness, lambda b: off + shift, regions, data, z)
+        _, now, out = _pulled(name, 20.0, measure, lambda b: off + shift, regions, data, z)
         return now - off, out
 
     up, l_up = run(0.2)
     down, _ = run(-0.2)
-    assert float(up.min()) > 0.02 and float(down.max()) < -0.02, (up, down)  # 0.10-0.13 and -0.05 / -0.07 measured
-    # the first step's gap: the fresh G's first batch against off's end + 0.2 (0.19 measured)
-    assert "edge_sharpness_gap" not in l_off[0] and 0.05 < l_up[0]["edge_sharpness_gap"] < 0.5
-    _assert_region_term_refusals("edge_sharpness", data, tmp_path)
+    # luminance: 0.08-0.11 and -0.05 / -0.07 measured; chromaticity 0.08-0.12 and -0.04 to -0.07
+    assert float(up.min()) > 0.02 and float(down.max()) < -0.02, (up, down)
+    # the first step's gap: the fresh G's first batch against off's end + 0.2 (0.20 measured either way)
+    assert f"{name}_gap" not in l_off[0] and 0.05 < l_up[0][f"{name}_gap"] < 0.5
+    _assert_region_term_refusals(name, data, tmp_path)
 
 
 def test_region_specular_link_known_values_gradients_and_bad_input():
@@ -4172,6 +4181,57 @@ def test_beard_weight_holds_the_mean_hair_share_and_spreads_it_by_the_mean_squar
     assert TrainSettings(beard_weight=1.0, hairline_region=True).region_terms  # it counts as a per-region term
 
 
+def test_beard_share_is_the_share_of_faces_past_each_edge_and_pulls_a_beard_or_none(tmp_path):
+    """The beard-share measure is, per sample, a sigmoid of the beard zone's soft hair share past each edge, so its
+    mean over samples is the share's survival function (non-increasing along the edges, near the step's). Same seed,
+    same steps: a target of 30 % of faces past every edge (a beard or none) spreads G's shares apart, where a
+    target of every face past 0.1-0.3 and none past 0.5 gathers them; float64 gradients; it needs its target, and bad
+    settings are refused."""
+    from fitme_cli.reflectance.gan.data import beard_zone
+    from fitme_cli.reflectance.gan.metrics import soft_hair_share
+    from fitme_cli.reflectance.gan.train import _BEARD_SHARE_EDGES, _beard_share
+
+    data = _tiny_data()
+    regions = _two_regions()
+    g = torch.Generator().manual_seed(3)
+    x = data.clone()
+    x[:, :3] += 0.6 * torch.rand(16, 1, 1, 1, generator=g) * torch.randn(16, 3, 16, 16, generator=g)  # 0 to much hair
+    v = soft_hair_share(decode_maps(GanImages(x[:, :3], x[:, 3:4], x[:, 4:]), TINY).albedo, beard_zone(16))
+    got = _beard_share(x, regions)
+    assert got.shape == (16, len(_BEARD_SHARE_EDGES)) == (16, 6) and 0.05 < float(v.std())
+    edges = torch.tensor(_BEARD_SHARE_EDGES)
+    torch.testing.assert_close(got, torch.sigmoid((v[:, None] - edges) / 0.02))  # the regions not used
+    assert bool((got.diff(dim=1) <= 0).all())  # past 0.3 means past 0.2 too
+    step = (v[:, None] > edges).float()
+    assert float((got - step).abs().max()) < 0.5 and float((got.mean(0) - step.mean(0)).abs().max()) < 0.15
+    y = x[:2].double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: _beard_share(t, regions), (y,))
+    z = torch.randn(64, TINY.z_dim, generator=torch.Generator().manual_seed(9))
+
+    def run(weight, target):
+        state = new_state(TINY, TrainSettings(batch=8, kimg=1, g_lr=0.005, d_lr=0.005, ema_kimg=0.01,
+                                              beard_share_weight=weight, beard_share_beta=0.9))
+        state.regions, state.beard_share_target = regions, torch.tensor(target)
+        out = _seeded_steps(state, data, 60)
+        with torch.no_grad():
+            share = soft_hair_share(decode_maps(state.G(z), TINY).albedo, beard_zone(16))
+        return share, out
+
+    apart_target, alike_target = [0.3] * 6, [1.0, 1.0, 1.0, 0.0, 0.0, 0.0]
+    off, l_off = run(0.0, apart_target)
+    apart, l_on = run(2.0, apart_target)
+    alike, _ = run(2.0, alike_target)
+
+    def distance(share, target):  # mean |survival - target| over the edges
+        return float(((share[:, None] > edges).float().mean(0) - torch.tensor(target)).abs().mean())
+
+    # about half of training alone's distance either way: 0.425 -> 0.237 and 0.271 -> 0.130 measured (beta 0.9)
+    for now, target in ((apart, apart_target), (alike, alike_target)):
+        assert distance(now, target) < 0.65 * distance(off, target), (distance(now, target), distance(off, target))
+    assert float(apart.std()) > 1.4 * float(alike.std()), (apart.std(), alike.std())  # 0.27 against 0.16 measured
+    assert "beard_share_gap" not in l_off[0] and l_on[-1]["beard_share_gap"] > 0
+    _assert_region_term_refusals("beard_share", data, tmp_path)
+
 def test_tone_weight_sets_the_spread_of_tones_between_samples(tmp_path):
     """Same seed, same steps: with the tone term's mean target at the data's per-region mean albedo, a variance
     target of 0 (no spread) narrows G's tones between samples below where training alone takes them, and one of
@@ -5483,7 +5543,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     r = CliRunner().invoke(main, [*args[:-6], "--kimg", "0.016", "--resume", "--ema-kimg", "0.5", "--g-lr", "0.001",
                                   "--g-top-lr-mul", "4", "--ada-target", "0.8", "--no-ada-color", "--moment-weight", "10", "--moment-drift-weight", "5",
                                   "--link-weight", "20", "--coherence-weight", "20", "--band-weight", "5", "--band-levels", "3", "--spectrum-weight", "0.01", "--relief-weight", "2",
-                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--beard-specular-weight", "0.5", "--brow-hair-weight", "0.5", "--beard-texture-weight", "0.5", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
+                                  "--colour-weight", "0.5", "--mean-map-weight", "0.01", "--tone-order-weight", "0.1", "--detail-map-weight", "0.0001", "--tone-band-weight", "0.5", "--chroma-band-weight", "0.5", "--specular-band-weight", "0.5", "--grain-weight", "0.5", "--lattice-weight", "0.5", "--chroma-grain-weight", "0.5", "--specular-link-weight", "5", "--specular-spectrum-weight", "0.01", "--texel-tail-weight", "5", "--eye-ring-weight", "10", "--edge-sharpness-weight", "3", "--specular-slope-weight", "4", "--forehead-rows-weight", "6", "--albedo-specular-link-weight", "3", "--hairline-edge-weight", "2", "--hairline-specks-weight", "0.1", "--beard-band-weight", "0.5", "--relief-band-weight", "4", "--nyquist-weight", "0.5", "--normal-symmetry-weight", "3", "--texel-neighbour-weight", "2", "--mouth-rows-weight", "3", "--screen-weight", "0.01", "--screen-levels", "2", "--specular-quantile-weight", "0.5", "--range-map-weight", "0.0001", "--range-quantile-weight", "0.5", "--eye-flat-weight", "0.5", "--brow-profile-weight", "0.5", "--lip-ring-weight", "0.5", "--grain-evenness-weight", "0.5", "--specular-sobel-weight", "0.5", "--normal-spectrum-weight", "0.01", "--normal-tilt-weight", "0.5", "--specular-law-weight", "0.5", "--grain-overlap-weight", "0.5", "--normal-radial-weight", "0.5", "--sheet-radial-weight", "0.5", "--lattice-phase-weight", "0.5", "--strip-radial-weight", "0.5", "--strip-slope-link-weight", "0.5", "--hair-law-tail-weight", "0.5", "--sheet-axis-weight", "0.5", "--mottle-weight", "0.5", "--beard-specular-weight", "0.5", "--brow-hair-weight", "0.5", "--beard-texture-weight", "0.5", "--beard-share-weight", "0.5", "--chroma-edge-weight", "3", "--gamut-weight", "20", "--hairline-share-weight", "2", "--hairline-region", "--side-regions",
                                   "--eye-region", "--brow-edge-region", "--branch-noise", "0.05", "--trunk-noise", "4:0.1", "--patch-weight", "0.5",
                                   "--patch-size", "8", "--patch-count", "2", "--patch-channels", "4", "--patch-r1-gamma", "0.1",
                                   "--bf16", "--threads", "1"])
@@ -5529,6 +5589,8 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.eye_ring_weight == 10.0 and lines[-1]["eye_ring_gap"] > 0 and "eye_ring_gap" not in lines[0]
     assert state.train.edge_sharpness_weight == 3.0 and lines[-1]["edge_sharpness_gap"] > 0
     assert "edge_sharpness_gap" not in lines[0]
+    assert state.train.chroma_edge_weight == 3.0 and lines[-1]["chroma_edge_gap"] > 0
+    assert "chroma_edge_gap" not in lines[0]
     assert state.train.specular_slope_weight == 4.0 and lines[-1]["specular_slope_gap"] > 0
     assert "specular_slope_gap" not in lines[0]
     assert state.train.forehead_rows_weight == 6.0 and lines[-1]["forehead_rows_gap"] > 0
@@ -5577,7 +5639,7 @@ def test_train_command_runs_resumes_and_refuses_to_clobber(dataset_dir, tmp_path
     assert state.train.lattice_phase_weight == 0.5 and lines[-1]["lattice_phase_gap"] > 0
     assert "lattice_phase_gap" not in lines[0]
     for term in ("strip_radial", "strip_slope_link", "hair_law_tail", "sheet_axis", "mottle", "beard_specular", "brow_hair",
-                 "beard_texture"):
+                 "beard_texture", "beard_share"):
         assert getattr(state.train, f"{term}_weight") == 0.5 and lines[-1][f"{term}_gap"] > 0
         assert f"{term}_gap" not in lines[0]
     assert state.train.hairline_share_weight == 2.0 and lines[-1]["hairline_share_gap"] > 0

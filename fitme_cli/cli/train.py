@@ -60,6 +60,7 @@ _TRAIN_FLAGS = ("batch", "kimg", "r1_gamma", "ada", "snapshot_kimg", "seed", "g_
                 "grain_overlap_weight", "normal_radial_weight", "sheet_radial_weight", "lattice_phase_weight",
                 "strip_radial_weight", "strip_slope_link_weight", "hair_law_tail_weight", "sheet_axis_weight",
                 "mottle_weight", "beard_specular_weight", "brow_hair_weight", "beard_texture_weight",
+                "beard_share_weight", "chroma_edge_weight",
                 "hairline_share_weight", "hairline_region", "side_regions", "eye_region", "brow_edge_region",
                 "drift_on_ema", "patch_weight", "patch_size", "patch_count", "patch_channels", "patch_r1_gamma",
                 "patch_focus", "gamut_weight", "bf16")
@@ -230,6 +231,9 @@ def _res_strength(ctx: click.Context, param: click.Parameter, values: tuple[str,
               help="Pull each region's edge sharpness in G's albedo (how much of a change across 4 texels happens in "
                    "one step) to the data's, against soft or doubled hair, brow and lip edges (not in the paper; may "
                    "change on --resume). [0]")
+@click.option("--chroma-edge-weight", type=click.FloatRange(min=0),
+              help="The edge-sharpness term on the albedo's log chromaticity: colour that steps in one texel at an "
+                   "edge, not a fringe fading over several (not in the paper; may change on --resume). [0]")
 @click.option("--specular-slope-weight", type=click.FloatRange(min=0),
               help="Pull each region's correlation of the specular's slope with the normals' tilt to the data's, "
                    "against a specular that is not its strands' and pores' height (not in the paper; may change on "
@@ -371,6 +375,10 @@ def _res_strength(ctx: click.Context, param: click.Parameter, values: tuple[str,
                    "the log luminance's and log specular's three finest bands over the beard zone, times its hair "
                    "share) to the data's in units of its spread: even speckle or strands, not stains and clumps (not "
                    "in the paper; may change on --resume). [0]")
+@click.option("--beard-share-weight", type=click.FloatRange(min=0),
+              help="Pull the share of faces whose beard zone is more than 10, 20, 30, 50, 70 and 90 % hair to the "
+                   "data's: a beard or none, not a faint haze on many faces (not in the paper; may change on "
+                   "--resume). [0]")
 @click.option("--gamut-weight", type=click.FloatRange(min=0),
               help="Penalise texels of G's albedo outside the data's hue gamut r >= g >= b (greenish skin, blue casts "
                    "in hair), which D did not learn (not in the paper; may change on --resume). [0]")

@@ -64,7 +64,8 @@ _REGION_TERMS = ("coherence", "band", "spectrum", "relief", "colour", "beard", "
                  "brow_profile", "lip_ring", "grain_evenness", "specular_sobel", "normal_spectrum",
                  "normal_tilt", "specular_law", "grain_overlap", "normal_radial",
                  "sheet_radial", "lattice_phase", "strip_radial", "strip_slope_link", "hair_law_tail",
-                 "sheet_axis", "mottle", "beard_specular", "brow_hair", "beard_texture")
+                 "sheet_axis", "mottle", "beard_specular", "brow_hair", "beard_texture", "beard_share",
+                 "chroma_edge")
 
 
 @dataclass(frozen=True)
@@ -569,6 +570,23 @@ class TrainSettings:
     # 377.01 kimg G_ema's gap went 0.90 -> 0.31 spreads, but by-eye judges still told G (90 of 96): not kept. 0: off
     beard_texture_weight: float = 0.0
     beard_texture_beta: float = 0.99  # per-step decay of the running statistics and their squares
+    # not in the paper: the share of faces whose beard-zone soft hair share (``metrics.soft_hair_share``) exceeds each
+    # of ``_BEARD_SHARE_EDGES``, by a sigmoid (``_beard_share``): the share's distribution, where the beard term pulls
+    # its mean and mean square only. The data draws a beard or none: of its 512 maps (256^2) 27 % exceed 0.1 and
+    # 11 % exceed 0.9; G_ema at 377.01 kimg 31 % and 4 %, with 15 % of its faces at 0.1-0.2 against the data's 5 %:
+    # the by-eye judges' "see-through haze of stubble with no edge" (docs/brdf_gan.md). At 0.1 and 0.4 it did not
+    # move G's running shares in 0.9 kimg; at 3 it closed them (gap 0.044 -> 0.023 in 0.84 kimg, D balanced), and
+    # G_ema 379.61's faces at 0.1-0.2 fell to 4 % (data 5 %), those past 0.9 rose to 8 % (data 11 %). 0: off
+    beard_share_weight: float = 0.0
+    beard_share_beta: float = 0.99  # per-step decay of the running shares
+    # not in the paper: the edge-sharpness term on the albedo's log chromaticity (``_chroma_edge``, red-green and
+    # yellow-blue per region). At 377.01 kimg G_ema's luminance edges were as sharp as the data's (hairline 0.573
+    # against 0.584) but its colour edges were not: hairline 0.503 / 0.503 against 0.617 / 0.634, every other region
+    # but the eyes 0.03-0.09 short. The colour changes over two or three texels where the luminance steps in one,
+    # the by-eye judges' "reddish fringe" along the hair's edge (docs/brdf_gan.md). At 10 to 379.61 kimg: hairline
+    # 0.570 / 0.573, scalp 0.534 / 0.549 (data 0.561 / 0.591), D balanced. 0: off
+    chroma_edge_weight: float = 0.0
+    chroma_edge_beta: float = 0.99  # per-step decay of the running sharpness
     # not in the paper: the per-region terms above also measure the data's hairline as a region of its
     # own (``data.load_regions(hairline=True)``: a 7-texel band at 256^2, carved from the labels around
     # it). At 151.01 and 158.01 kimg the albedo's finest band there was 0.63-0.70 of the data's and the
@@ -941,6 +959,14 @@ class TrainState:
     # share, and the share (``_beard_texture``), the beard-texture term's target, and G's running mean of them
     beard_texture_target: torch.Tensor | None = None
     running_beard_texture: torch.Tensor | None = None
+    # (6,) float32: the share of the data's faces whose beard-zone hair share exceeds each of ``_BEARD_SHARE_EDGES``
+    # (``_beard_share``), the beard-share term's target, and G's running share
+    beard_share_target: torch.Tensor | None = None
+    running_beard_share: torch.Tensor | None = None
+    # (k * 2,) float32: the data's per-region edge sharpness of the log chromaticity (``_chroma_edge``), the
+    # chroma-edge term's target, and G's running mean of it
+    chroma_edge_target: torch.Tensor | None = None
+    running_chroma_edge: torch.Tensor | None = None
     # the local D and its optimiser when ``train.patch_weight`` > 0 (``new_state``), else None
     D_patch: PatchDiscriminator | None = None
     opt_D_patch: torch.optim.Adam | None = None
@@ -1319,6 +1345,13 @@ def _edge_sharpness(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     albedo's mean of r, g, b (floored at 1e-3), the edge-sharpness term's measure."""
     log = log_luminance(decode_albedo(x[:, :3]))
     return region_edge_sharpness(log, regions).flatten(1)
+
+
+def _chroma_edge(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, k * 2): per region, ``metrics.region_edge_sharpness`` of the linear
+    albedo's ``metrics.log_chroma`` (red-green, yellow-blue), the chroma-edge term's measure: whether colour steps
+    in one texel at an edge, as the data's masks do, or fades over several."""
+    return region_edge_sharpness(log_chroma(decode_albedo(x[:, :3])), regions).flatten(1)
 
 
 _TAIL_FLOOR = 0.002  # the tail term's scale floor: 2 per mille, against a near-0 target (the data's nose has no bumps)
@@ -2126,6 +2159,26 @@ def _albedo_beard(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     return torch.stack([v, v.square()], 1)
 
 
+# ``_beard_share``'s edges on the beard zone's hair share, and its sigmoid's width. No edge below 0.1: the data's
+# bare faces sit at 0.02-0.05 and G_ema's (377.01 kimg) at 0.04-0.10, which is the bare skin's texel noise, not a
+# beard (the grain terms hold it). At 0.02 the soft shares are within 0.01 of the step's on the data from 0.2 up,
+# and 0.04 above it at 0.1, where the bare faces' tail begins.
+_BEARD_SHARE_EDGES = (0.1, 0.2, 0.3, 0.5, 0.7, 0.9)
+_BEARD_SHARE_SOFTNESS = 0.02
+
+
+def _beard_share(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
+    """(B, 7, R, R) network space -> (B, 6) in (0, 1), x's dtype (float32 at least): per sample, whether the soft
+    hair share of its linear albedo over the beard zone (``metrics.soft_hair_share``, ``data.beard_zone``) exceeds
+    each of ``_BEARD_SHARE_EDGES``, by a sigmoid of width ``_BEARD_SHARE_SOFTNESS``: averaged over samples, the
+    share's survival function, so that ``coherence_loss`` pulls its distribution (a beard or none), not only the
+    mean and mean square that ``_albedo_beard`` gives. ``regions`` is not used."""
+    x = x.to(torch.promote_types(x.dtype, torch.float32))
+    v = soft_hair_share(decode_albedo(x[:, :3]), _beard_zone(x.shape[-1]).to(x.device))
+    edges = torch.tensor(_BEARD_SHARE_EDGES, dtype=v.dtype, device=v.device)
+    return torch.sigmoid((v[:, None] - edges) / _BEARD_SHARE_SOFTNESS)
+
+
 @functools.lru_cache(maxsize=4)
 def _beard_labels(resolution: int) -> torch.Tensor:
     return torch.where(_beard_zone(resolution), 0, 255).to(torch.uint8)  # one region: the zone
@@ -2466,7 +2519,8 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
             "hair_law_tail": lambda x, regions: _hair_law_tail(x, regions, gan),
             "sheet_axis": lambda x, regions: _sheet_axis(x, regions, gan), "mottle": _mottle,
             "beard_specular": lambda x, regions: _beard_specular(x, regions, gan), "brow_hair": _brow_hair,
-            "beard_texture": lambda x, regions: _beard_texture(x, regions, gan)}
+            "beard_texture": lambda x, regions: _beard_texture(x, regions, gan), "beard_share": _beard_share,
+            "chroma_edge": _chroma_edge}
 
 
 # per-region term -> (its loss, its gap: the distance of the running mean to the target that ``train_step`` reports
@@ -2475,10 +2529,10 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # (floored); tone: the same over ``_tone_scale``; tone_order: the same over ``_tone_order_scale``; detail_map and range_map: over
 # ``_detail_map_scale``;
 # tone_band and chroma_band and specular_band, grain, lattice, chroma_grain and beard_band as band; beard,
-# hairline_share, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope, forehead_rows,
-# albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and mouth_rows: mean
-# |running - target|; screen, specular_quantile, range_quantile, eye_flat, brow_profile, lip_ring, grain_evenness,
-# specular_sobel, normal_tilt, specular_law, grain_overlap, normal_radial, sheet_radial, lattice_phase, strip_radial,
+# hairline_share, beard_share, chroma_edge, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope,
+# forehead_rows, albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and
+# mouth_rows: mean |running - target|; screen, specular_quantile, range_quantile, eye_flat, brow_profile, lip_ring,
+# grain_evenness, specular_sobel, normal_tilt, specular_law, grain_overlap, normal_radial, sheet_radial, lattice_phase, strip_radial,
 # strip_slope_link, hair_law_tail, sheet_axis, mottle, beard_specular and brow_hair: mean |gap|
 # in the data's spreads (``_spread_gap``); beard_texture: the same for bearded faces (``_share_spread_gap``);
 # texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
@@ -2511,7 +2565,8 @@ _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _
                   "strip_radial": (spread_loss, _spread_gap), "strip_slope_link": (spread_loss, _spread_gap),
                   "hair_law_tail": (spread_loss, _spread_gap), "sheet_axis": (spread_loss, _spread_gap),
                   "mottle": (spread_loss, _spread_gap), "beard_specular": (spread_loss, _spread_gap),
-                  "brow_hair": (spread_loss, _spread_gap), "beard_texture": (share_spread_loss, _share_spread_gap)}
+                  "brow_hair": (spread_loss, _spread_gap), "beard_texture": (share_spread_loss, _share_spread_gap),
+                  "beard_share": (coherence_loss, _abs_gap), "chroma_edge": (coherence_loss, _abs_gap)}
 
 
 def _region_term(name: str, weight: float, beta: float, regions: torch.Tensor | None, target: torch.Tensor | None,
