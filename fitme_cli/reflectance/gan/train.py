@@ -2155,8 +2155,15 @@ def _albedo_beard(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     """(B, 7, R, R) network space -> (B, 2): per sample, the soft hair share of the linear albedo over the beard
     zone (``metrics.soft_hair_share``, ``data.beard_zone``) and its square. ``regions`` is not used: the zone is
     the layout's, whatever the region labels are."""
-    v = soft_hair_share(decode_albedo(x[:, :3]), _beard_zone(x.shape[-1]).to(x.device))
+    v = _beard_hair_share(decode_albedo(x[:, :3]))
     return torch.stack([v, v.square()], 1)
+
+
+def _beard_hair_share(albedo: torch.Tensor) -> torch.Tensor:
+    """(B, 3, R, R) linear albedo -> (B,) in (0, 1): the soft hair share of the beard zone (``metrics.soft_hair_share``,
+    ``data.beard_zone``), differentiable: the beard and beard-share terms' measure, and the beard-zone terms' weight
+    (``_beard_weight``)."""
+    return soft_hair_share(albedo, _beard_zone(albedo.shape[-1]).to(albedo.device))
 
 
 # ``_beard_share``'s edges on the beard zone's hair share, and its sigmoid's width. No edge below 0.1: the data's
@@ -2174,7 +2181,7 @@ def _beard_share(x: torch.Tensor, regions: torch.Tensor) -> torch.Tensor:
     share's survival function, so that ``coherence_loss`` pulls its distribution (a beard or none), not only the
     mean and mean square that ``_albedo_beard`` gives. ``regions`` is not used."""
     x = x.to(torch.promote_types(x.dtype, torch.float32))
-    v = soft_hair_share(decode_albedo(x[:, :3]), _beard_zone(x.shape[-1]).to(x.device))
+    v = _beard_hair_share(decode_albedo(x[:, :3]))
     edges = torch.tensor(_BEARD_SHARE_EDGES, dtype=v.dtype, device=v.device)
     return torch.sigmoid((v[:, None] - edges) / _BEARD_SHARE_SOFTNESS)
 
@@ -2199,7 +2206,7 @@ def _beard_weight(albedo: torch.Tensor) -> torch.Tensor:
     """(B, 3, R, R) linear albedo -> (B,): the beard zone's soft hair share (``metrics.soft_hair_share``), without
     gradient: the beard-zone terms' per-face weight, which the beard term, not they, holds."""
     with torch.no_grad():
-        return soft_hair_share(albedo, _beard_zone(albedo.shape[-1]).to(albedo.device))
+        return _beard_hair_share(albedo)
 
 
 def _beard_specular(x: torch.Tensor, regions: torch.Tensor, s: GanSettings) -> torch.Tensor:
@@ -2532,9 +2539,9 @@ def _region_measures(t: TrainSettings, gan: GanSettings) -> dict[str, Callable[[
 # hairline_share, beard_share, chroma_edge, crown, mean_map, specular_link, eye_ring, edge_sharpness, specular_slope,
 # forehead_rows, albedo_specular_link, hairline_edge, relief_band, nyquist, normal_symmetry, texel_neighbour and
 # mouth_rows: mean |running - target|; screen, specular_quantile, range_quantile, eye_flat, brow_profile, lip_ring,
-# grain_evenness, specular_sobel, normal_tilt, specular_law, grain_overlap, normal_radial, sheet_radial, lattice_phase, strip_radial,
-# strip_slope_link, hair_law_tail, sheet_axis, mottle, beard_specular and brow_hair: mean |gap|
-# in the data's spreads (``_spread_gap``); beard_texture: the same for bearded faces (``_share_spread_gap``);
+# grain_evenness, specular_sobel, normal_tilt, specular_law, grain_overlap, normal_radial, sheet_radial, lattice_phase,
+# strip_radial, strip_slope_link, hair_law_tail, sheet_axis, mottle, beard_specular and brow_hair: mean |gap| in the
+# data's spreads (``_spread_gap``); beard_texture: the same for bearded faces (``_share_spread_gap``);
 # texel_tail: as colour, floored at ``_TAIL_FLOOR``; hairline_specks: the same at ``_SPECK_FLOOR``
 _REGION_LOSSES = {"coherence": (coherence_loss, _abs_gap), "band": (band_loss, _relative_gap),
                   "spectrum": (spectrum_loss, _spectrum_gap), "relief": (coherence_loss, _abs_gap),
